@@ -1,0 +1,139 @@
+"""Typed records that the capture stage hands to the rest of the pipeline.
+
+Images are channels-last ``(H, W, 3)`` float32 numpy arrays of *linear* radiance in the capture's
+working colour space (see ``docs/conventions.md``). Poses are OpenCV ``world_to_camera`` 3x4
+matrices ``[R | t]`` mapping world points to camera coordinates (+x right, +y down, +z forward).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "CameraModel",
+    "DirectionalLight",
+    "NoiseModel",
+    "ImageSpec",
+    "CaptureConfig",
+    "View",
+    "Capture",
+]
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Intrinsics of the camera that took every image of a capture.
+
+    ``model`` is ``"pinhole"`` (``fx, fy, cx, cy`` in pixels) or ``"orthographic"``
+    (``pixel_size`` world units per pixel, principal point ``cx, cy``). Pixel ``(u, v)`` samples
+    the ray through the pixel centre ``(u + 0.5, v + 0.5)``.
+    """
+
+    model: str
+    width: int
+    height: int
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    pixel_size: float | None = None
+
+    def K(self) -> np.ndarray:
+        """3x3 pinhole intrinsic matrix (pinhole cameras only)."""
+        if self.model != "pinhole":
+            raise ValueError("K() is defined for pinhole cameras only")
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """A distant light: unit ``direction`` toward the light (world frame) and RGB ``radiance``.
+
+    ``radiance`` is the irradiance the light delivers to a surface facing it (units of the
+    linear image values); a Lambertian surface of albedo ``a`` then has radiance
+    ``a / pi * radiance * max(n . direction, 0)``.
+    """
+
+    direction: np.ndarray
+    radiance: np.ndarray
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    r"""Per-pixel noise variance of linear radiance values.
+
+    :math:`\sigma^2(s) = \mathrm{read}^2 + \mathrm{gain}\, s + (\mathrm{relative}\, s)^2`
+    with :math:`s` the (exposure-normalised) signal: a read-noise floor, Poisson shot noise with
+    ``gain`` units of signal per photo-electron, and a multiplicative term (e.g. PRNU, or the
+    simulator's "x% pixel noise").
+    """
+
+    read: float = 0.0
+    gain: float = 0.0
+    relative: float = 0.0
+
+    def variance(self, signal: np.ndarray) -> np.ndarray:
+        """Variance for the given (non-negative) linear signal."""
+        s = np.clip(signal, 0.0, None)
+        return self.read**2 + self.gain * s + (self.relative * s) ** 2
+
+    @property
+    def is_known(self) -> bool:
+        """True when any term is non-zero (the capture declares a noise model)."""
+        return (self.read > 0) or (self.gain > 0) or (self.relative > 0)
+
+
+@dataclass(frozen=True)
+class ImageSpec:
+    """One ``[[images]]`` entry of ``capture.toml``, paths resolved."""
+
+    file: Path
+    world_to_camera: np.ndarray  # (3, 4) float64
+    exposure: float = 1.0
+    light: DirectionalLight | None = None
+
+
+@dataclass
+class CaptureConfig:
+    """A validated ``capture.toml``."""
+
+    root: Path
+    toml_path: Path
+    name: str
+    mesh: Path
+    camera: CameraModel
+    lighting_kind: str  # "environment" | "directional"
+    images: list[ImageSpec]
+    noise: NoiseModel = field(default_factory=NoiseModel)
+    saturation: float | None = None  # linear value at/above which a pixel is saturated
+    albedo: np.ndarray | None = None  # known Lambertian albedo (RGB), else None
+    warnings: list[str] = field(default_factory=list)
+    raw: dict = field(default_factory=dict)  # the parsed TOML, for later stages' extra keys
+
+
+@dataclass
+class View:
+    """One photograph, linearised: radiance, validity mask, per-pixel noise variance."""
+
+    index: int
+    spec: ImageSpec
+    radiance: np.ndarray  # (H, W, 3) float32, linear, exposure-normalised
+    mask: np.ndarray  # (H, W) bool, True where all channels are valid
+    variance: np.ndarray | None = None  # (H, W, 3) float32 or None when no noise model
+    info: dict = field(default_factory=dict)  # linearisation chain, counts (for the report)
+
+
+@dataclass
+class Capture:
+    """A loaded capture: the config and its linearised views."""
+
+    config: CaptureConfig
+    views: list[View]
+
+    @property
+    def name(self) -> str:
+        """Display name."""
+        return self.config.name

@@ -1,0 +1,1 @@
+"""brdfcap.reports stage."""
