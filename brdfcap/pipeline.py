@@ -1,0 +1,271 @@
+"""Run one capture through every stage: capture -> reconstruct -> fit -> report.
+
+Each stage takes and returns dataclasses; this module only sequences them, times them and
+turns the outcome into ``results.json`` + ``report.html`` (both written atomically).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import platform
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from brdfcap import __version__
+from brdfcap.atomic import write_json_atomic
+from brdfcap.capture.load import load_capture
+from brdfcap.capture.types import Capture
+from brdfcap.errors import FitError
+from brdfcap.fit.filters import lambertian_filter
+from brdfcap.fit.lighting import (REL_STDERR_LIMIT, RESOLUTION_LIMIT, AlbedoFit, SHFit,
+                                  fit_albedo_directional, fit_lighting_lambertian)
+from brdfcap.fit.render import lambertian_radiance_directional, lambertian_radiance_sh
+from brdfcap.fit.sh import band_of_index
+from brdfcap.reconstruct.geometry import Geometry, Samples, build_samples, compute_geometry
+from brdfcap.reconstruct.mesh import load_mesh
+from brdfcap.reports import figures as F
+from brdfcap.reports.html import ReportInputs, write_report
+
+__all__ = ["RunOptions", "RunOutcome", "run_capture", "RESULTS_FORMAT", "versions"]
+
+RESULTS_FORMAT = "brdfcap-results/1"
+
+ILL_CONDITIONING_DEFINITION = (
+    f"A band l is ill-conditioned when any of its coefficients is not resolved by the data "
+    f"(model-resolution diagonal < {RESOLUTION_LIMIT}, e.g. bands whose filter Â_l vanishes) or "
+    f"when the median standard error of its coefficients exceeds {REL_STDERR_LIMIT:g} × |L00| "
+    f"(signal-to-noise of a unit-amplitude band below 1: the data-space form of Ramamoorthi & "
+    f"Hanrahan's Λ_l ρ̂_l < ε criterion)."
+)
+
+
+@dataclass
+class RunOptions:
+    """Options of ``brdfcap run`` that change results."""
+
+    lmax: int = 2
+    device: str = "cpu"
+
+
+@dataclass
+class RunOutcome:
+    """What a run produced."""
+
+    results: dict
+    results_path: Path
+    report_path: Path
+    capture: Capture | None = None
+    samples: Samples | None = None
+    lighting: SHFit | None = None
+    albedo: AlbedoFit | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def versions() -> dict[str, str]:
+    """Versions of brdfcap and the libraries that shape its numbers."""
+    out = {"brdfcap": __version__, "python": platform.python_version(),
+           "torch": torch.__version__, "numpy": np.__version__}
+    for mod in ("open3d", "kornia", "rawpy", "colour", "OpenImageIO", "scipy"):
+        try:
+            m = __import__(mod)
+            out[mod] = str(getattr(m, "__version__", "unknown"))
+        except Exception:  # pragma: no cover - optional at runtime
+            out[mod] = "not installed"
+    return out
+
+
+def _finite_or_none(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _json_safe(obj):
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return _finite_or_none(float(obj))
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _predict(samples: Samples, lighting: SHFit | None, albedo_fit: AlbedoFit | None,
+             albedo: torch.Tensor) -> torch.Tensor:
+    if lighting is not None:
+        return lambertian_radiance_sh(samples.normal, lighting.coefficients, albedo)
+    return lambertian_radiance_directional(samples.normal, samples.wi, samples.light_radiance,
+                                           albedo_fit.albedo)
+
+
+def _summary(results: dict, lighting: SHFit | None, albedo_fit: AlbedoFit | None) -> list[str]:
+    s = []
+    fit = results["fit"]
+    s.append(f"{fit['n_samples']} pixel samples from {len(results['images'])} views; "
+             f"RMS residual {fit['residual_rel']:.3g} of the mean signal.")
+    if lighting is not None:
+        ill = lighting.ill_conditioned_from_l
+        s.append(f"Recovered SH lighting up to l = {lighting.lmax} "
+                 f"({(lighting.lmax + 1) ** 2} coefficients per channel); "
+                 + ("all bands determined by the data." if ill is None else
+                    f"bands from l = {ill} on are ill-conditioned (not determined by the data)."))
+        c0 = lighting.coefficients[0].tolist()
+        e0 = lighting.stderr[0].tolist()
+        s.append("L00 (RGB) = " + ", ".join(f"{c:.4g} ± {e:.2g}" for c, e in zip(c0, e0)) + ".")
+        s.append("Scale: " + lighting.scale_fixing + ".")
+        s.append("Seed prediction for a Lambertian BRDF: lighting beyond l = 2 is "
+                 "ill-conditioned (odd l > 1 exactly unobservable, even l attenuated as "
+                 "l^-5/2; R&H 2001).")
+    if albedo_fit is not None:
+        s.append("Lambertian albedo (RGB) = " + ", ".join(
+            f"{a:.4g} ± {e:.2g}" for a, e in zip(albedo_fit.albedo.tolist(),
+                                                   albedo_fit.stderr.tolist())) + ".")
+    return s
+
+
+def run_capture(capture_dir: str | Path, out_dir: str | Path,
+                options: RunOptions | None = None) -> RunOutcome:
+    """Run the full pipeline on one capture directory and write its outputs.
+
+    Writes ``out_dir/results.json`` and ``out_dir/report.html`` atomically (the report last but
+    one, ``results.json`` last, so a present ``results.json`` means a complete run).
+
+    Raises
+    ------
+    brdfcap.errors.BrdfcapError
+        Any user-facing problem, with the file and the fix named.
+    """
+    opts = options or RunOptions()
+    out = Path(out_dir)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    cap = load_capture(capture_dir)
+    timings["capture"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    mesh = load_mesh(cap.config.mesh)
+    geom: Geometry = compute_geometry(cap, mesh)
+    samples = build_samples(cap, geom, device=opts.device)
+    timings["reconstruct"] = time.perf_counter() - t0
+    warnings = list(cap.config.warnings)
+    for g in geom.views:
+        warnings += g.warnings
+    if len(samples) == 0:
+        raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
+                       cap.config.toml_path)
+
+    t0 = time.perf_counter()
+    lighting, albedo_fit = None, None
+    alb_known = None if cap.config.albedo is None else torch.as_tensor(cap.config.albedo)
+    if cap.config.lighting_kind == "environment":
+        k = (opts.lmax + 1) ** 2
+        if len(samples) < k:
+            raise FitError(f"{len(samples)} samples cannot determine {k} coefficients per channel "
+                           f"(lmax = {opts.lmax}); lower --lmax or add views",
+                           cap.config.toml_path)
+        lighting = fit_lighting_lambertian(samples.normal, samples.radiance, opts.lmax,
+                                           variance=samples.variance, albedo=alb_known,
+                                           noise_model=cap.config.noise)
+        albedo = alb_known if alb_known is not None else torch.ones(3, dtype=torch.float64)
+    else:
+        albedo_fit = fit_albedo_directional(samples.normal, samples.wi, samples.light_radiance,
+                                            samples.radiance, samples.variance)
+        albedo = albedo_fit.albedo
+    pred = _predict(samples, lighting, albedo_fit, albedo.to(samples.normal.device))
+    timings["fit"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    resid = (samples.radiance - pred)
+    rms = float(resid.pow(2).mean().sqrt())
+    rel = rms / max(float(samples.radiance.abs().mean()), 1e-300)
+    results: dict = {
+        "format": RESULTS_FORMAT,
+        "capture": cap.name,
+        "capture_dir": str(Path(capture_dir).resolve()),
+        "generated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "options": asdict(opts),
+        "versions": versions(),
+        "device": str(samples.normal.device),
+        "lighting": None,
+        "brdf": {"model": "lambertian", "parameters": {}},
+        "fit": {"n_samples": len(samples), "residual_rms": rms, "residual_rel": rel},
+        "images": [v.info for v in cap.views],
+        "warnings": warnings,
+    }
+    if lighting is not None:
+        results["lighting"] = {
+            "lmax": lighting.lmax, "sh": "rh2001-real", "frame": "world",
+            "coefficients": lighting.coefficients.tolist(),
+            "stderr": [[_finite_or_none(e) for e in row] for row in lighting.stderr.tolist()],
+            "determined": lighting.determined.tolist(),
+            "ill_conditioned_from_l": lighting.ill_conditioned_from_l,
+            "ill_conditioning_definition": ILL_CONDITIONING_DEFINITION,
+            "bands": lighting.bands,
+            "chi2_reduced": lighting.chi2_reduced.tolist(),
+            "noise_source": lighting.noise_source,
+            "scale_fixing": lighting.scale_fixing,
+        }
+        results["brdf"]["parameters"] = {
+            "albedo": albedo.tolist(),
+            "albedo_source": "capture.toml [material].albedo" if alb_known is not None
+            else "fixed to 1 (scale absorbed into the lighting)"}
+    else:
+        results["brdf"]["parameters"] = {"albedo": albedo_fit.albedo.tolist(),
+                                         "albedo_stderr": albedo_fit.stderr.tolist(),
+                                         "chi2_reduced": albedo_fit.chi2_reduced.tolist(),
+                                         "noise_source": albedo_fit.noise_source}
+
+    # figures: per-view images of observed / re-rendered
+    obs, ren, masks, titles = [], [], [], []
+    pred_np = pred.detach().cpu().numpy()
+    vidx = samples.view.cpu().numpy()
+    pix = samples.pixel.cpu().numpy()
+    for view in cap.views:
+        r = np.zeros_like(view.radiance, dtype=np.float64)
+        sel = vidx == view.index
+        r[pix[sel, 0], pix[sel, 1]] = pred_np[sel]
+        m = np.zeros(view.mask.shape, bool)
+        m[pix[sel, 0], pix[sel, 1]] = True
+        obs.append(view.radiance)
+        ren.append(r)
+        masks.append(m)
+        titles.append(view.spec.file.name)
+    figs = {"thumbnails": F.fig_to_data_uri(F.thumbnails_figure(obs, masks, titles))}
+    shown = list(range(min(len(obs), 4)))
+    figs["residuals"] = F.fig_to_data_uri(F.residual_figure(
+        [obs[i] for i in shown], [ren[i] for i in shown], [masks[i] for i in shown],
+        [titles[i] for i in shown]))
+    if lighting is not None:
+        band = band_of_index(lighting.lmax)
+        c = lighting.coefficients.cpu()
+        e = lighting.stderr.cpu()
+        energy = np.stack([c[band == l].pow(2).mean(0).sqrt().numpy()
+                           for l in range(lighting.lmax + 1)])
+        eerr = np.stack([e[band == l].pow(2).mean(0).sqrt().numpy()
+                         for l in range(lighting.lmax + 1)])
+        filt = lambertian_filter(lighting.lmax).numpy()
+        figs["spectrum"] = F.fig_to_data_uri(F.spectrum_figure(
+            lighting.bands, energy, eerr, filt / filt[0], lighting.ill_conditioned_from_l))
+    summary = _summary(results, lighting, albedo_fit)
+    results["summary"] = summary
+    timings["report"] = time.perf_counter() - t0
+    results["timings_s"] = timings
+    results = _json_safe(results)
+    report_path = write_report(out / "report.html",
+                               ReportInputs(results=results, figures=figs, summary=summary,
+                                            warnings=warnings))
+    results_path = write_json_atomic(out / "results.json", results)
+    return RunOutcome(results=results, results_path=results_path, report_path=report_path,
+                      capture=cap, samples=samples, lighting=lighting, albedo=albedo_fit,
+                      warnings=warnings)

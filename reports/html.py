@@ -1,0 +1,68 @@
+"""Self-contained HTML measurement report (jinja2 with autoescape, figures embedded)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jinja2
+
+from brdfcap.atomic import write_text_atomic
+
+__all__ = ["ReportInputs", "render_report", "write_report"]
+
+
+@dataclass
+class ReportInputs:
+    """What the report shows: the results record plus figure data URIs and display tables."""
+
+    results: dict
+    figures: dict[str, str]
+    summary: list[str]
+    warnings: list[str] = field(default_factory=list)
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        if math.isinf(v) or math.isnan(v):
+            return "∞" if math.isinf(v) else "—"
+        return f"{v:.4g}"
+    return str(v)
+
+
+def _env() -> jinja2.Environment:
+    return jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(Path(__file__).parent / "templates")),
+        autoescape=jinja2.select_autoescape(["html"]),
+        undefined=jinja2.StrictUndefined,
+    )
+
+
+def render_report(inp: ReportInputs) -> str:
+    """Render ``report.html`` to a string."""
+    r = inp.results
+    rows = []
+    if r.get("lighting"):
+        lt = r["lighting"]
+        for i, (vals, errs) in enumerate(zip(lt["coefficients"], lt["stderr"])):
+            l = int(math.isqrt(i))
+            rows.append({"index": i, "l": l, "m": i - l * (l + 1),
+                         "cells": list(zip(vals, [None if e is None else e for e in errs]))})
+    keys: list[str] = []
+    for img in r.get("images", []):
+        for k in img:
+            if k not in keys:
+                keys.append(k)
+    tpl = _env().get_template("report.html")
+    return tpl.render(r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings,
+                      coef_rows=rows, chain_keys=keys, fmt=_fmt)
+
+
+def write_report(path: str | Path, inp: ReportInputs) -> Path:
+    """Render and write the report atomically."""
+    return write_text_atomic(path, render_report(inp))
