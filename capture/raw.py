@@ -365,14 +365,18 @@ def _cfa_data(raw, path: Path, lut: list[int]):
 
 def _levels(raw, path: Path, opts: RawOptions, lut: list[int]):
     """Black (per R, G, B) and white level, with their sources."""
-    per_index = list(raw.black_level_per_channel)
-    black = np.zeros(3)
-    for i, c in enumerate(lut):
-        black[c] = per_index[i] if i < len(per_index) else per_index[0]
+    per_index = [float(v) for v in raw.black_level_per_channel]
+    per_index += [per_index[0]] * (len(lut) - len(per_index))
+    black = np.full(3, np.nan)
+    for i, c in enumerate(lut):  # first index of each colour (G2 of 'RGBG' is index 3)
+        if np.isnan(black[c]) and i < max(raw.num_colors, 3):
+            black[c] = per_index[i]
+    black_idx = np.asarray(per_index[: len(lut)])
     black_src = "metadata (LibRaw black_level_per_channel)"
     if opts.black_level is not None:
         b = np.broadcast_to(np.asarray(opts.black_level, dtype=np.float64), (3,))
         black, black_src = b.copy(), "capture.toml"
+        black_idx = b[np.asarray(lut)]
     white = float(raw.white_level) if raw.white_level else 0.0
     white_src = "metadata (LibRaw white_level)"
     if opts.white_level is not None:
@@ -383,7 +387,7 @@ def _levels(raw, path: Path, opts: RawOptions, lut: list[int]):
     if np.any(black >= white):
         raise CaptureError(f"black level {black.tolist()} is not below the white level {white}; "
                            "set [raw] black_level / white_level in capture.toml", path)
-    return black, black_src, white, white_src
+    return black, black_idx, black_src, white, white_src
 
 
 def _colour_matrix(raw, tags: dict, path: Path, opts: RawOptions):
@@ -573,8 +577,12 @@ def _normalised_samples(path: Path, opts: RawOptions, what: str = "raw file"):
     raw = _open(path, what)
     desc, lut = _colour_filter(raw, path)
     data, chan = _cfa_data(raw, path, lut)
-    black, black_src, white, white_src = _levels(raw, path, opts, lut)
-    return raw, desc, lut, data, chan, black, black_src, white, white_src
+    black, black_idx, black_src, white, white_src = _levels(raw, path, opts, lut)
+    if chan is not None:  # per-sample black from the CFA index (G1 and G2 may differ)
+        b_site = black_idx[np.asarray(raw.raw_colors_visible)]
+    else:
+        b_site = np.broadcast_to(black, data.shape)
+    return raw, desc, lut, data, chan, black, b_site, black_src, white, white_src
 
 
 def _per_site(values3: np.ndarray, data: np.ndarray, chan: np.ndarray | None) -> np.ndarray:
@@ -585,12 +593,11 @@ def _per_site(values3: np.ndarray, data: np.ndarray, chan: np.ndarray | None) ->
 def _flat_field(path: Path, opts: RawOptions, shape, chan):
     """Flat frame normalised per channel to 1 at the image centre (mean of the central 10%)."""
     fopts = RawOptions(black_level=opts.black_level, white_level=opts.white_level)
-    raw, _, _, data, fchan, black, _, white, _ = _normalised_samples(path, fopts, "flat field")
+    raw, _, _, data, fchan, _, b, _, white, _ = _normalised_samples(path, fopts, "flat field")
     raw.close()
     if data.shape != shape or (chan is not None and not np.array_equal(fchan, chan)):
         raise CaptureError(f"flat field is {data.shape[:2]}, the image {shape[:2]}: they must "
                            "come from the same camera and mode", path)
-    b = _per_site(black, data, fchan)
     f = (data - b) / (white - b)
     H, W = shape[:2]
     cy, cx, hy, hx = H // 2, W // 2, max(2, H // 20), max(2, W // 20)
@@ -634,8 +641,8 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
     """
     path = Path(path)
     opts = (options or RawOptions()).validate(path)
-    raw, desc, lut, data, chan, black, black_src, white, white_src = _normalised_samples(
-        path, opts)
+    raw, desc, lut, data, chan, black, b_site, black_src, white, white_src = \
+        _normalised_samples(path, opts)
     try:
         tags = _dng_tags(path)
         C, matrix_src = _colour_matrix(raw, tags, path, opts)
@@ -644,7 +651,6 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
         prof, noise_src = _noise_profile(tags, opts, path)
 
         # -- levels, saturation (on the raw values, before any interpolation) --------------
-        b_site = _per_site(black, data, chan)
         span = white - b_site
         thr = b_site + opts.saturation_fraction * span
         site_ok = data < thr
