@@ -289,8 +289,8 @@ def _open(path: Path, what: str = "raw file"):
         raise CaptureError(f"{what} is not a raw format LibRaw can decode (unsupported or "
                            f"corrupt header: {e})", path) from None
     except (rawpy.LibRawError, OSError, ValueError) as e:
-        raise CaptureError(f"{what} is corrupt or truncated: LibRaw could not read the raw data "
-                           f"({type(e).__name__}: {e})", path) from None
+        raise CaptureError(f"{what} is corrupt, truncated or not a raw file: LibRaw could not "
+                           f"read it ({type(e).__name__}: {e})", path) from None
 
 
 def _dng_tags(path: Path) -> dict:
@@ -352,7 +352,8 @@ def _cfa_data(raw, path: Path, lut: list[int]):
         img = np.asarray(raw.raw_image_visible if raw.raw_image_visible is not None
                          else raw.raw_image)
     except rawpy.LibRawError as e:
-        raise CaptureError(f"raw data unreadable ({type(e).__name__}: {e})", path) from None
+        raise CaptureError(f"raw data is corrupt or truncated: LibRaw could not decode it "
+                           f"({type(e).__name__}: {e})", path) from None
     if img.ndim != 3 or img.shape[2] < 3:
         raise CaptureError(f"unsupported raw layout {img.shape} (need a CFA or 3-channel "
                            "LinearRaw image)", path)

@@ -142,8 +142,9 @@ def write_dng(path: str | Path, samples: np.ndarray, *, cfa: str | None = "RGGB"
     cfa : str or None
         Bayer pattern for 2-D ``samples`` (``"RGGB"``, ``"BGGR"``, ``"GRBG"``, ``"GBRG"``).
     black_level, white_level : number
-    xyz_to_camera : (3, 3)
-        Written as ``ColorMatrix1`` with ``CalibrationIlluminant1 = 21`` (D65).
+    xyz_to_camera : (3, 3) or None
+        Written as ``ColorMatrix1`` with ``CalibrationIlluminant1 = 21`` (D65); None writes no
+        colour matrix.
     as_shot_neutral : 3 floats
         Camera RGB of a neutral under the scene light.
     shutter, aperture, iso : float, optional
@@ -167,10 +168,10 @@ def write_dng(path: str | Path, samples: np.ndarray, *, cfa: str | None = "RGGB"
         (50708, "s", 0, model, True),
         (50714, 5, n, _rationals([black_level] * n), True),
         (50717, "I", n, (int(white_level),) * n, True),
-        (50721, 10, 9, _rationals(xyz_to_camera), True),
         (50728, 5, 3, _rationals(as_shot_neutral), True),
-        (50778, "H", 1, (21,), True),
     ]
+    if xyz_to_camera is not None:  # None: a file without colour metadata (for tests)
+        tags += [(50721, 10, 9, _rationals(xyz_to_camera), True), (50778, "H", 1, (21,), True)]
     if not linear:
         validate_method(cfa, _CFA_CODES, "CFA pattern")
         tags += [(33421, "H", 2, (2, 2), True), (33422, "B", 4, _CFA_CODES[cfa], True),
