@@ -166,7 +166,9 @@ def matrix_camera_to_XYZ(xyz_to_camera: np.ndarray) -> np.ndarray:
         If the matrix is singular or its rows do not give positive camera white responses.
     """
     C = np.asarray(xyz_to_camera, dtype=np.float64).reshape(3, 3)
-    M_rgb_xyz = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ, dtype=np.float64)
+    # inverse of the same XYZ -> sRGB matrix used for the output, so that a camera whose
+    # matrix *is* XYZ -> sRGB maps to the working space by exactly the identity
+    M_rgb_xyz = np.linalg.inv(matrix_XYZ_to_working("srgb-linear"))
     A = C @ M_rgb_xyz
     rows = A.sum(axis=1, keepdims=True)
     if not np.all(np.isfinite(A)) or np.any(rows <= 0):
