@@ -14,7 +14,8 @@ import numpy as np
 
 from brdfcap.errors import CaptureError
 
-from .types import CameraModel, CaptureConfig, DirectionalLight, ImageSpec, NoiseModel
+from .types import (CameraModel, CaptureConfig, Correspondences, DirectionalLight, ImageSpec,
+                    NoiseModel, PointLight)
 
 __all__ = ["load_config", "CAPTURE_FORMAT", "KNOWN_KEYS"]
 
@@ -23,11 +24,11 @@ CAPTURE_FORMAT = "brdfcap/1"
 #: Known keys per table; anything else produces a warning. Later stages extend these sets.
 KNOWN_KEYS: dict[str, set[str]] = {
     "": {"format", "name", "geometry", "camera", "lighting", "images", "noise", "material",
-         "saturation", "raw", "colour", "color", "registration", "simulation"},
-    "geometry": {"mesh", "units", "normals"},
+         "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor"},
+    "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask", "frame_check"},
     "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},
     "lighting": {"kind"},
-    "images": {"file", "world_to_camera", "exposure", "light", "raw", "mask"},
+    "images": {"file", "world_to_camera", "exposure", "light", "raw", "mask", "correspondences"},
     "noise": {"read", "gain", "relative"},
     "material": {"model", "albedo"},
 }
@@ -77,7 +78,16 @@ def _parse_camera(tab: dict, path: Path) -> CameraModel:
         fy = float(_get(tab, "fy", "camera.", path, num, required=False, default=fx))
         if fx <= 0 or fy <= 0:
             raise CaptureError("keys 'camera.fx'/'camera.fy' must be positive", path)
-        return CameraModel("pinhole", width, height, fx=fx, fy=fy, cx=cx, cy=cy)
+        dist = None
+        if "distortion" in tab:
+            d = np.asarray(_get(tab, "distortion", "camera.", path, (list,)), dtype=np.float64)
+            if d.ndim != 1 or len(d) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(d)):
+                raise CaptureError("key 'camera.distortion' must be OpenCV coefficients "
+                                   "[k1, k2, p1, p2(, k3(, k4, k5, k6(, s1..s4(, tx, ty))))]: "
+                                   "4, 5, 8, 12 or 14 finite numbers", path)
+            dist = tuple(float(x) for x in d) if np.any(d != 0) else None
+        return CameraModel("pinhole", width, height, fx=fx, fy=fy, cx=cx, cy=cy,
+                           distortion=dist)
     ps = float(_get(tab, "pixel_size", "camera.", path, num))
     if ps <= 0:
         raise CaptureError("key 'camera.pixel_size' must be positive", path)
@@ -97,6 +107,64 @@ def _parse_pose(value: Any, key: str, path: Path) -> np.ndarray:
         raise CaptureError(f"key '{key}': the 3x3 part is not a rotation (R R^T != I or det < 0)",
                            path)
     return m
+
+
+def _parse_geometry_source(geom: dict, root: Path, path: Path):
+    """``[geometry]``: exactly one of ``mesh`` / ``normal_map`` (``docs/capture-format.md``)."""
+    has_mesh, has_nm = "mesh" in geom, "normal_map" in geom
+    if has_mesh == has_nm:
+        raise CaptureError(
+            "[geometry] needs exactly one geometry source: 'mesh' (a triangle mesh) or "
+            "'normal_map' (per-pixel world-frame normals, EXR)" + (", not both" if has_mesh
+                                                                    else ""), path)
+    frame_check = _get(geom, "frame_check", "geometry.", path, (str,), False, "error")
+    if frame_check not in ("error", "warn", "off"):
+        raise CaptureError(f"key 'geometry.frame_check' must be 'error', 'warn' or 'off', got "
+                           f"{frame_check!r}", path)
+    if has_mesh:
+        if "mask" in geom:
+            raise CaptureError("key 'geometry.mask' applies to 'geometry.normal_map' only", path)
+        return root / _get(geom, "mesh", "geometry.", path, (str,)), None, None, frame_check
+    nm = root / _get(geom, "normal_map", "geometry.", path, (str,))
+    mask = _get(geom, "mask", "geometry.", path, (str,), False, None)
+    return None, nm, None if mask is None else root / mask, frame_check
+
+
+def _parse_correspondences(value: Any, where: str, path: Path) -> Correspondences:
+    """``correspondences = [{pixel = [u, v], point = [x, y, z]}, ...]`` (pixel centres at +0.5)."""
+    key = where + "correspondences"
+    if not isinstance(value, list) or not all(isinstance(c, dict) for c in value):
+        raise CaptureError(f"key '{key}' must be a list of {{pixel = [u, v], point = [x, y, z]}}",
+                           path)
+    pix, pts = [], []
+    for j, c in enumerate(value):
+        p2 = np.asarray(c.get("pixel"), dtype=np.float64)
+        p3 = np.asarray(c.get("point"), dtype=np.float64)
+        if p2.shape != (2,) or p3.shape != (3,) or not (np.all(np.isfinite(p2))
+                                                         and np.all(np.isfinite(p3))):
+            raise CaptureError(f"key '{key}[{j}]' needs pixel = [u, v] and point = [x, y, z] "
+                               "(finite numbers)", path)
+        pix.append(p2)
+        pts.append(p3)
+    return Correspondences(pixels=np.array(pix).reshape(-1, 2), points=np.array(pts).reshape(-1, 3))
+
+
+def _parse_mesh_options(geom: dict, root: Path, path: Path) -> dict:
+    """``geometry.units``, ``geometry.normals``, ``geometry.smooth_normals``, ``geometry.scan``."""
+    units = geom.get("units", "m")
+    if isinstance(units, bool) or not isinstance(units, (str, int, float)):
+        raise CaptureError(f"key 'geometry.units' must be a unit name or a number, got {units!r}",
+                           path)
+    normals = _get(geom, "normals", "geometry.", path, (str,), False, "vertex")
+    if normals not in ("vertex", "face"):
+        raise CaptureError(f"key 'geometry.normals' must be 'vertex' or 'face', got {normals!r}",
+                           path)
+    smooth = _get(geom, "smooth_normals", "geometry.", path, (int,), False, 0)
+    if smooth < 0:
+        raise CaptureError("key 'geometry.smooth_normals' must be >= 0", path)
+    scan = _get(geom, "scan", "geometry.", path, (str,), False, None)
+    return {"mesh_units": units, "mesh_normals": normals, "smooth_normals": smooth,
+            "scan": None if scan is None else root / scan}
 
 
 def load_config(capture_dir: str | Path) -> CaptureConfig:
@@ -137,7 +205,8 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
 
     geom = _get(doc, "geometry", "", toml_path, (dict,))
     _unknown(geom, "geometry", "geometry.", warnings)
-    mesh = root / _get(geom, "mesh", "geometry.", toml_path, (str,))
+    mesh, normal_map, geom_mask, frame_check = _parse_geometry_source(geom, root, toml_path)
+    mesh_opts = _parse_mesh_options(geom, root, toml_path)
 
     cam_tab = _get(doc, "camera", "", toml_path, (dict,))
     _unknown(cam_tab, "camera", "camera.", warnings)
@@ -162,6 +231,9 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
     if min(noise.read, noise.gain, noise.relative) < 0:
         raise CaptureError("keys under [noise] must be >= 0", toml_path)
     sat = _get(doc, "saturation", "", toml_path, num, required=False, default=None)
+    dark = _get(doc, "dark_floor", "", toml_path, num, required=False, default=None)
+    if dark is not None and not 0 <= dark < (1.0 if sat is None else sat):
+        raise CaptureError("key 'dark_floor' must be >= 0 and below 'saturation'", toml_path)
 
     albedo = None
     if "material" in doc:
@@ -190,7 +262,15 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
         if not exposure > 0:
             raise CaptureError(f"key '{where}exposure' must be > 0", toml_path)
         light = None
-        if "light" in entry:
+        if "light" in entry and "position" in _get(entry, "light", where, toml_path, (dict,)):
+            lt = entry["light"]
+            pos = _vec3(lt["position"], where + "light.position", toml_path)
+            inten = _vec3(lt.get("intensity", [1.0, 1.0, 1.0]), where + "light.intensity",
+                          toml_path)
+            if np.any(inten < 0):
+                raise CaptureError(f"key '{where}light.intensity' must be >= 0", toml_path)
+            light = PointLight(position=pos, intensity=inten)
+        elif "light" in entry:
             lt = _get(entry, "light", where, toml_path, (dict,))
             d = _vec3(lt.get("direction"), where + "light.direction", toml_path)
             nrm = np.linalg.norm(d)
@@ -201,9 +281,18 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
         elif kind == "directional":
             raise CaptureError(f"lighting.kind is 'directional' but '{where}light' is missing",
                                toml_path)
-        specs.append(ImageSpec(file=file, world_to_camera=pose, exposure=exposure, light=light))
+        corr = None
+        if "correspondences" in entry:
+            corr = _parse_correspondences(entry["correspondences"], where, toml_path)
+        mask_file = None
+        if isinstance(entry.get("mask"), str):
+            mask_file = root / entry["mask"]
+        specs.append(ImageSpec(file=file, world_to_camera=pose, exposure=exposure, light=light,
+                               correspondences=corr, mask_file=mask_file))
 
     return CaptureConfig(root=root, toml_path=toml_path, name=name, mesh=mesh, camera=camera,
                          lighting_kind=kind, images=specs, noise=noise,
                          saturation=None if sat is None else float(sat), albedo=albedo,
-                         warnings=warnings, raw=doc)
+                         warnings=warnings, raw=doc, normal_map=normal_map,
+                         geometry_mask=geom_mask, frame_check=frame_check,
+                         dark_floor=None if dark is None else float(dark), **mesh_opts)

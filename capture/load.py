@@ -12,7 +12,43 @@ from .config import load_config
 from .images import LINEAR_EXTENSIONS, read_image
 from .types import Capture, CaptureConfig, ImageSpec, View
 
-__all__ = ["load_capture", "linearise_view"]
+__all__ = ["load_capture", "linearise_view", "read_integer_image", "INTEGER_EXTENSIONS"]
+
+#: Integer-coded *linear* images (e.g. DiLiGenT's 16-bit PNGs). Read as code / (2^bits - 1) in
+#: [0, 1]; 8-bit files are refused (8-bit PNGs are display-encoded, not linear).
+INTEGER_EXTENSIONS = {".png"}
+
+
+def read_integer_image(path: str | Path) -> tuple[np.ndarray, int]:
+    """Read a 16-bit integer image as ``(H, W, 3)`` float32 ``code / 65535`` and its max code.
+
+    Raises
+    ------
+    CaptureError
+        Missing/corrupt file, or fewer than 16 bits per channel.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError("image file not found; check the [[images]].file path", path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise CaptureError(f"cannot open image: {oiio.geterror() or 'corrupt'}", path)
+    try:
+        spec = inp.spec()
+        fmt = spec.format
+        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+    finally:
+        inp.close()
+    if fmt != oiio.TypeDesc(oiio.UINT16):
+        raise CaptureError(f"integer image has pixel type {fmt}; only 16-bit linear images are "
+                           "accepted (an 8-bit PNG is display-encoded: convert to EXR)", path)
+    if data is None:
+        raise CaptureError("cannot read pixels (corrupt file)", path)
+    arr = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    arr = np.repeat(arr[..., :1], 3, axis=2) if arr.shape[2] < 3 else arr[..., :3]
+    return np.ascontiguousarray(arr), 65535
 
 
 def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
@@ -23,11 +59,12 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
     the *raw pixel value* reaches ``saturation``: a clipped channel no longer measures radiance.
     """
     ext = spec.file.suffix.lower()
-    if ext not in LINEAR_EXTENSIONS:
+    if ext not in LINEAR_EXTENSIONS | INTEGER_EXTENSIONS:
         raise CaptureError(
             f"unsupported image type '{ext}': linear images must be one of "
-            f"{', '.join(sorted(LINEAR_EXTENSIONS))}", spec.file)
-    pixels = read_image(spec.file)
+            f"{', '.join(sorted(LINEAR_EXTENSIONS | INTEGER_EXTENSIONS))}", spec.file)
+    integer = ext in INTEGER_EXTENSIONS
+    pixels = read_integer_image(spec.file)[0] if integer else read_image(spec.file)
     cam = config.camera
     if pixels.shape[:2] != (cam.height, cam.width):
         raise CaptureError(
@@ -36,10 +73,18 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
     finite = np.all(np.isfinite(pixels), axis=2)
     mask = finite.copy()
     n_sat = 0
-    if config.saturation is not None:
-        sat = np.any(pixels >= config.saturation, axis=2) & finite
+    sat_level = config.saturation
+    if integer:  # the top code of an integer image is clipped whatever capture.toml says
+        sat_level = 1.0 if sat_level is None else min(sat_level, 1.0)
+    if sat_level is not None:
+        sat = np.any(pixels >= sat_level, axis=2) & finite
         n_sat = int(sat.sum())
         mask &= ~sat
+    n_dark = 0
+    if config.dark_floor is not None:  # all channels in the noise floor (docs/capture-format.md)
+        dark = np.all(pixels < config.dark_floor, axis=2) & finite & mask
+        n_dark = int(dark.sum())
+        mask &= ~dark
     radiance = np.where(finite[..., None], pixels, 0.0).astype(np.float32) / np.float32(
         spec.exposure)
     variance = None
@@ -53,6 +98,10 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
         "saturated_pixels": n_sat,
         "saturated_fraction": n_sat / float(pixels.shape[0] * pixels.shape[1]),
     }
+    if integer:
+        info["source"] = "16-bit integer image (code / 65535)"
+    if config.dark_floor is not None:
+        info["dark_pixels"] = n_dark
     return View(index=index, spec=spec, radiance=radiance, mask=mask, variance=variance, info=info)
 
 
@@ -65,8 +114,14 @@ def load_capture(capture_dir: str | Path) -> Capture:
         Any missing/corrupt file or invalid key (the message names it).
     """
     config = load_config(capture_dir)
-    if not config.mesh.is_file():
+    if config.mesh is not None and not config.mesh.is_file():
         raise CaptureError("mesh file not found; check geometry.mesh in capture.toml",
                            config.mesh)
+    if config.normal_map is not None and not config.normal_map.is_file():
+        raise CaptureError("normal map not found; check geometry.normal_map in capture.toml",
+                           config.normal_map)
+    if config.geometry_mask is not None and not config.geometry_mask.is_file():
+        raise CaptureError("mask not found; check geometry.mask in capture.toml",
+                           config.geometry_mask)
     views = [linearise_view(i, spec, config) for i, spec in enumerate(config.images)]
     return Capture(config=config, views=views)

@@ -15,6 +15,8 @@ import numpy as np
 __all__ = [
     "CameraModel",
     "DirectionalLight",
+    "PointLight",
+    "Correspondences",
     "NoiseModel",
     "ImageSpec",
     "CaptureConfig",
@@ -40,6 +42,7 @@ class CameraModel:
     cx: float | None = None
     cy: float | None = None
     pixel_size: float | None = None
+    distortion: tuple[float, ...] | None = None  # OpenCV (k1, k2, p1, p2[, k3...]), pinhole
 
     def K(self) -> np.ndarray:
         """3x3 pinhole intrinsic matrix (pinhole cameras only)."""
@@ -59,6 +62,28 @@ class DirectionalLight:
 
     direction: np.ndarray
     radiance: np.ndarray
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """A point light at ``position`` (world frame) of RGB radiant ``intensity``.
+
+    The irradiance on a surface facing the light at distance ``r`` is ``intensity / r**2``
+    (inverse-square falloff), in the same units as :attr:`DirectionalLight.radiance`.
+    """
+
+    position: np.ndarray
+    intensity: np.ndarray
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """2D-3D correspondences of one image (``[[images]].correspondences``): pixel coordinates
+    ``pixels (N, 2)`` as ``(u, v)`` in the continuous frame where pixel centres are at ``+0.5``,
+    and mesh/world ``points (N, 3)`` in world units."""
+
+    pixels: np.ndarray
+    points: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -93,7 +118,9 @@ class ImageSpec:
     file: Path
     world_to_camera: np.ndarray  # (3, 4) float64
     exposure: float = 1.0
-    light: DirectionalLight | None = None
+    light: DirectionalLight | PointLight | None = None
+    correspondences: Correspondences | None = None  # for PnP (reconstruct.pose)
+    mask_file: Path | None = None  # foreground mask image (silhouette refinement)
 
 
 @dataclass
@@ -103,7 +130,7 @@ class CaptureConfig:
     root: Path
     toml_path: Path
     name: str
-    mesh: Path
+    mesh: Path | None  # None when the geometry is a normal map
     camera: CameraModel
     lighting_kind: str  # "environment" | "directional"
     images: list[ImageSpec]
@@ -112,6 +139,19 @@ class CaptureConfig:
     albedo: np.ndarray | None = None  # known Lambertian albedo (RGB), else None
     warnings: list[str] = field(default_factory=list)
     raw: dict = field(default_factory=dict)  # the parsed TOML, for later stages' extra keys
+    mesh_units: str | float = "m"  # geometry.units: name in reconstruct.mesh.UNITS or metres
+    mesh_normals: str = "vertex"  # geometry.normals: "vertex" | "face"
+    smooth_normals: int = 0  # geometry.smooth_normals: 1-ring normal smoothing iterations
+    scan: Path | None = None  # geometry.scan: point cloud of the sample in its capture pose
+    normal_map: Path | None = None  # geometry.normal_map: per-pixel world normals (EXR)
+    geometry_mask: Path | None = None  # geometry.mask: object mask for the normal map
+    frame_check: str = "error"  # geometry.frame_check: "error" | "warn" | "off"
+    dark_floor: float | None = None  # raw value below which (all channels) a pixel is dark
+
+    @property
+    def geometry_source(self) -> str:
+        """``"mesh"`` or ``"normal_map"``."""
+        return "normal_map" if self.normal_map is not None else "mesh"
 
 
 @dataclass
