@@ -207,9 +207,24 @@ def write_capture_toml(path: Path, top: dict, tables: dict, images: list[dict]) 
     tmp.replace(path)
 
 
-def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | None):
+def _scene_light(light: dict):
+    """A scene ``[[lighting.lights]]`` entry as a capture light record."""
+    from .types import DirectionalLight, PointLight
+
+    if "position" in light:
+        return PointLight(position=np.asarray(light["position"], np.float64),
+                          intensity=np.asarray(light.get("intensity", [1, 1, 1]), np.float64))
+    d = np.asarray(light["direction"], np.float64)
+    return DirectionalLight(direction=d / np.linalg.norm(d),
+                            radiance=np.asarray(light.get("radiance", [1, 1, 1]), np.float64))
+
+
+def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | None,
+                 cast_shadows: bool = False):
+    """Render one view; returns ``(image, n_shadowed_pixels)``. Shadow rays are cast only when
+    ``cast_shadows`` (a non-convex mesh under a known light)."""
     from brdfcap.reconstruct.camera import camera_rays
-    from brdfcap.reconstruct.geometry import cast_view
+    from brdfcap.reconstruct.geometry import add_lighting, cast_view, light_at
 
     cam = scene.camera
     if scene.shape == "sphere":
@@ -223,20 +238,26 @@ def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | N
         p = o + t[..., None] * d
         normal = p / scene.radius
     else:
-        g = cast_view(scene_rc, mesh, cam, pose, grazing_cos=-1.0)
+        g = cast_view(scene_rc, mesh, cam, pose, grazing_cos=-1.0, edge_px=0)
         hit, normal = g.hit, g.normal
+        p = g.position
+    n_shadow = 0
+    if scene.lighting_kind == "directional" and scene.shape == "mesh":
+        add_lighting(g, _scene_light(light), scene_rc, mesh, cast_shadows)
+        if g.shadow is not None:
+            n_shadow = int(g.shadow.sum())
+            hit = hit & ~g.shadow
     nrm = torch.as_tensor(normal[hit], dtype=torch.float64)
     alb = torch.as_tensor(scene.albedo)
     if scene.lighting_kind == "environment":
         rad = lambertian_radiance_sh(nrm, torch.as_tensor(scene.light_sh), alb)
     else:
-        wi = torch.as_tensor(np.asarray(light["direction"], np.float64))
-        wi = wi / wi.norm()
-        lr = torch.as_tensor(np.asarray(light.get("radiance", [1, 1, 1]), np.float64))
-        rad = lambertian_radiance_directional(nrm, wi.expand_as(nrm), lr.expand_as(nrm), alb)
+        wi_np, irr_np, _ = light_at(_scene_light(light), p[hit])
+        rad = lambertian_radiance_directional(nrm, torch.as_tensor(wi_np),
+                                              torch.as_tensor(irr_np), alb)
     img = np.zeros((cam.height, cam.width, 3))
     img[hit] = rad.numpy()
-    return img
+    return img, n_shadow
 
 
 def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
@@ -269,9 +290,20 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     rng = np.random.default_rng(scene.seed)
     poses = view_poses(scene.n_views, scene.distance, scene.elevation_deg)
     images = []
+    # shadows only where the shape needs them: a convex mesh (or the analytic sphere) cannot
+    # shadow itself, so no shadow ray is cast for it
+    cast_shadows, shadow_note = False, "sphere: convex, no shadow rays"
+    if scene.shape == "mesh" and scene.lighting_kind == "directional":
+        from brdfcap.reconstruct.shadows import shadow_policy
+
+        pol = shadow_policy(mesh, str(scene.raw.get("simulation", {}).get("shadows", "auto")))
+        cast_shadows, shadow_note = pol.cast, pol.reason
+    n_shadowed = 0
     for i, pose in enumerate(poses):
         light = scene.lights[i % len(scene.lights)] if scene.lights else None
-        img = _render_view(scene, mesh, rc, pose, light) * scene.exposure
+        img, ns = _render_view(scene, mesh, rc, pose, light, cast_shadows)
+        n_shadowed += ns
+        img = img * scene.exposure
         if scene.noise is not None:
             sd = np.sqrt(scene.noise.variance(img / scene.exposure)) * scene.exposure
             img = img + rng.standard_normal(img.shape) * sd
@@ -280,11 +312,16 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         fname = f"images/{i:03d}.exr"
         write_image(out / fname, img, attributes={"brdfcap:simulated": scene.name})
         entry = {"file": fname, "world_to_camera": pose, "exposure": scene.exposure}
-        if light is not None:
+        if light is not None and "position" in light:
+            entry["light"] = {"position": np.asarray(light["position"], float),
+                              "intensity": np.asarray(light.get("intensity", [1, 1, 1]), float)}
+        elif light is not None:
             d = np.asarray(light["direction"], np.float64)
             entry["light"] = {"direction": d / np.linalg.norm(d),
                               "radiance": np.asarray(light.get("radiance", [1, 1, 1]), float)}
         images.append(entry)
+    if cast_shadows:
+        effects.append("shadows")
     if scene.noise is not None:
         effects.append("noise")
     if scene.saturation is not None:
@@ -305,7 +342,9 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         top["saturation"] = scene.saturation
     write_capture_toml(out / "capture.toml", top, tables, images)
     truth = {"scene": str(scene.source), "name": scene.name, "effects": effects,
-             "albedo": scene.albedo.tolist(), "lighting_kind": scene.lighting_kind}
+             "albedo": scene.albedo.tolist(), "lighting_kind": scene.lighting_kind,
+             "shadows": {"cast": cast_shadows, "decision": shadow_note,
+                         "shadowed_pixels": n_shadowed}}
     if scene.light_sh is not None:
         truth["lighting"] = {"lmax": int(math.isqrt(scene.light_sh.shape[0])) - 1,
                              "sh": "rh2001-real", "frame": "world",

@@ -12,19 +12,32 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from brdfcap.capture.types import Capture, CameraModel, DirectionalLight
+from brdfcap.capture.types import Capture, CameraModel
 from brdfcap.errors import GeometryError
 
 from .camera import camera_rays
 from .mesh import Mesh
+from .shadows import ShadowPolicy, shadow_mask, shadow_policy
 
 __all__ = ["ViewGeometry", "Geometry", "Samples", "cast_view", "compute_geometry",
-           "build_samples", "GRAZING_COS"]
+           "build_samples", "light_at", "GRAZING_COS", "EDGE_PX", "DISCONTINUITY_SIN",
+           "compute_capture_geometry"]
 
 #: Pixels whose shading normal makes an angle above ``arccos(GRAZING_COS)`` (~84.3°) with the view
 #: direction are dropped: there the normal error of the scan and the pixel footprint make the
 #: sample unreliable, and silhouette pixels mix background.
 GRAZING_COS = 0.1
+
+#: Pixels within this many pixels (4-neighbourhood steps) of the silhouette or of a depth
+#: discontinuity are dropped: their footprint mixes background or a farther surface, and a
+#: pose error of a fraction of a pixel moves them off the object.
+EDGE_PX = 1
+
+#: A neighbouring hit whose chord to this pixel's hit rises more than ``asin(0.5)`` = 30° out of
+#: this pixel's tangent plane belongs to another surface (an occlusion boundary or a crease):
+#: both are edge pixels. On a smooth surface the chord stays within a few degrees of the tangent
+#: plane at every viewing angle, so no interior pixel of a smooth patch is lost.
+DISCONTINUITY_SIN = 0.5
 
 
 @dataclass
@@ -36,8 +49,15 @@ class ViewGeometry:
     normal: np.ndarray  # (H, W, 3) float64 interpolated shading normal (unit)
     triangle: np.ndarray  # (H, W) int64, -1 where no hit
     wo: np.ndarray  # (H, W, 3) float64 toward the camera
-    valid: np.ndarray  # (H, W) bool: hit and not grazing
+    valid: np.ndarray  # (H, W) bool: hit, not grazing, not an edge pixel
     warnings: list[str] = field(default_factory=list)
+    geometric_normal: np.ndarray | None = None  # (H, W, 3) flat normal of the hit triangle
+    depth: np.ndarray | None = None  # (H, W) ray parameter t (inf where no hit)
+    edge: np.ndarray | None = None  # (H, W) bool: silhouette / depth-discontinuity pixels
+    wi: np.ndarray | None = None  # (H, W, 3) toward the view's light (directional or point)
+    light_irradiance: np.ndarray | None = None  # (H, W, 3) E at the hit (1/r^2 for point lights)
+    light_distance: np.ndarray | None = None  # (H, W) distance to a point light, else None
+    shadow: np.ndarray | None = None  # (H, W) bool cast/attached shadow; None = not computed
 
 
 @dataclass
@@ -46,6 +66,7 @@ class Geometry:
 
     mesh: Mesh
     views: list[ViewGeometry]
+    shadows: ShadowPolicy | None = None  # the convexity decision, None without known lights
 
 
 @dataclass
@@ -64,6 +85,8 @@ class Samples:
     pixel: torch.Tensor  # (N, 2) long, (row, col)
     wi: torch.Tensor | None = None  # (N, 3) toward the light, for directional captures
     light_radiance: torch.Tensor | None = None  # (N, 3)
+    position: torch.Tensor | None = None  # (N, 3) world-frame hit points
+    triangle: torch.Tensor | None = None  # (N,) long, hit triangle index
 
     def __len__(self) -> int:
         return int(self.normal.shape[0])
@@ -78,9 +101,37 @@ def _scene(mesh: Mesh):
     return scene
 
 
+def _edge_pixels(hit: np.ndarray, pos: np.ndarray, gn: np.ndarray, edge_px: int) -> np.ndarray:
+    """Silhouette and depth-discontinuity pixels, grown by ``edge_px - 1`` pixels."""
+    h, w = hit.shape
+    edge = np.zeros((h, w), bool)
+    if edge_px <= 0:
+        return edge
+    hp = np.pad(hit, 1, constant_values=False)
+    pp = np.pad(pos, ((1, 1), (1, 1), (0, 0)))
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        nh = hp[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+        npos = pp[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+        chord = npos - pos
+        ln = np.linalg.norm(chord, axis=-1)
+        rise = np.abs(np.einsum("hwc,hwc->hw", chord, gn))
+        edge |= hit & (~nh | (rise > DISCONTINUITY_SIN * ln))
+    for _ in range(edge_px - 1):
+        e = np.pad(edge, 1)
+        edge = hit & (e[1:-1, 1:-1] | e[:-2, 1:-1] | e[2:, 1:-1] | e[1:-1, :-2] | e[1:-1, 2:])
+    return edge
+
+
 def cast_view(scene, mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray,
-              grazing_cos: float = GRAZING_COS) -> ViewGeometry:
-    """Cast one ray per pixel; interpolate vertex normals with the hit's barycentrics."""
+              grazing_cos: float = GRAZING_COS, edge_px: int = EDGE_PX) -> ViewGeometry:
+    """Cast one ray per pixel through its centre against the mesh.
+
+    The shading normal is the barycentric interpolation of the vertex normals
+    (``mesh.normals == "vertex"``) or the hit triangle's flat normal (``"face"``); the geometric
+    normal is always the flat one. ``valid`` keeps hits with ``n·ωo > grazing_cos`` that are not
+    within ``edge_px`` pixels of the silhouette or of a depth discontinuity
+    (:data:`EDGE_PX`, :data:`DISCONTINUITY_SIN`).
+    """
     import open3d as o3d
 
     o, d = camera_rays(camera, world_to_camera)
@@ -93,27 +144,88 @@ def cast_view(scene, mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarra
     uv = res["primitive_uvs"].numpy().astype(np.float64)
     tri = np.where(hit, prim, -1)
     n = np.zeros((h * w, 3))
+    gn = np.zeros((h * w, 3))
     pos = np.zeros((h * w, 3))
     if hit.any():
         f = mesh.faces[prim[hit]]
         bu, bv = uv[hit, 0:1], uv[hit, 1:2]
-        vn = mesh.vertex_normals
-        nn = (1 - bu - bv) * vn[f[:, 0]] + bu * vn[f[:, 1]] + bv * vn[f[:, 2]]
-        n[hit] = nn / np.clip(np.linalg.norm(nn, axis=1, keepdims=True), 1e-300, None)
-        od = rays[hit].astype(np.float64)
+        gn[hit] = mesh.face_normals[prim[hit]]
+        if mesh.normals == "face":
+            n[hit] = gn[hit]
+        else:
+            vn = mesh.vertex_normals
+            nn = (1 - bu - bv) * vn[f[:, 0]] + bu * vn[f[:, 1]] + bv * vn[f[:, 2]]
+            n[hit] = nn / np.clip(np.linalg.norm(nn, axis=1, keepdims=True), 1e-300, None)
         vt = mesh.vertices
         pos[hit] = (1 - bu - bv) * vt[f[:, 0]] + bu * vt[f[:, 1]] + bv * vt[f[:, 2]]
-        del od
     wo = -d.reshape(-1, 3)
     cos_o = np.einsum("ij,ij->i", n, wo)
-    valid = hit & (cos_o > grazing_cos)
+    edge = _edge_pixels(hit.reshape(h, w), pos.reshape(h, w, 3), gn.reshape(h, w, 3), edge_px)
+    valid = hit & (cos_o > grazing_cos) & ~edge.reshape(-1)
     return ViewGeometry(hit=hit.reshape(h, w), position=pos.reshape(h, w, 3),
                         normal=n.reshape(h, w, 3), triangle=tri.reshape(h, w),
-                        wo=wo.reshape(h, w, 3), valid=valid.reshape(h, w))
+                        wo=wo.reshape(h, w, 3), valid=valid.reshape(h, w),
+                        geometric_normal=gn.reshape(h, w, 3), depth=t.reshape(h, w), edge=edge)
 
 
-def compute_geometry(capture: Capture, mesh: Mesh) -> Geometry:
-    """Ray-cast every view of a capture.
+def light_at(light, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Direction toward a light and the irradiance it delivers at world points ``(..., 3)``.
+
+    A :class:`~brdfcap.capture.types.DirectionalLight` gives the same ``ωi`` and irradiance
+    (``radiance``) everywhere. A :class:`~brdfcap.capture.types.PointLight` of radiant intensity
+    ``I`` at ``x_l`` gives ``ωi = (x_l - x)/r`` and ``E = I / r²`` (inverse-square falloff,
+    irradiance on a surface facing the light), ``r = |x_l - x|``.
+
+    Returns
+    -------
+    wi, irradiance, distance
+        ``(..., 3)``, ``(..., 3)`` and ``(...)`` (``None`` for a directional light).
+    """
+    shp = positions.shape[:-1]
+    if hasattr(light, "position"):
+        v = np.asarray(light.position, np.float64) - positions
+        r = np.linalg.norm(v, axis=-1)
+        r_safe = np.clip(r, 1e-300, None)
+        wi = v / r_safe[..., None]
+        irr = np.asarray(light.intensity, np.float64) / (r_safe**2)[..., None]
+        return wi, irr, r
+    wi = np.broadcast_to(np.asarray(light.direction, np.float64), shp + (3,)).copy()
+    irr = np.broadcast_to(np.asarray(light.radiance, np.float64), shp + (3,)).copy()
+    return wi, irr, None
+
+
+def add_lighting(g: ViewGeometry, light, scene, mesh: Mesh, cast_shadows: bool) -> None:
+    """Fill ``wi``, ``light_irradiance``, ``light_distance`` and (if asked) ``shadow`` of a
+    view in place, for its hit pixels."""
+    h, w = g.hit.shape
+    wi = np.zeros((h, w, 3))
+    irr = np.zeros((h, w, 3))
+    m = g.hit
+    wi_h, irr_h, dist_h = light_at(light, g.position[m])
+    wi[m], irr[m] = wi_h, irr_h
+    g.wi, g.light_irradiance = wi, irr
+    if dist_h is not None:
+        dist = np.full((h, w), np.inf)
+        dist[m] = dist_h
+        g.light_distance = dist
+    if cast_shadows:
+        sh = np.zeros((h, w), bool)
+        if dist_h is not None and np.any(dist_h <= 0):
+            raise GeometryError("a point light lies on the mesh surface; move it off the sample")
+        sh[m] = shadow_mask(scene, g.position[m], g.geometric_normal[m], wi_h, mesh.extent,
+                            light_distance=dist_h)
+        g.shadow = sh
+
+
+def compute_geometry(capture: Capture, mesh: Mesh, shadows: str = "auto") -> Geometry:
+    """Ray-cast every view of a capture; light directions and shadows where lights are known.
+
+    Parameters
+    ----------
+    shadows : {"auto", "always", "never"}
+        ``auto`` casts shadow rays only for a non-convex mesh
+        (:func:`~brdfcap.reconstruct.shadows.shadow_policy`); the decision is recorded in
+        ``Geometry.shadows``.
 
     Raises
     ------
@@ -122,26 +234,41 @@ def compute_geometry(capture: Capture, mesh: Mesh) -> Geometry:
     """
     scene = _scene(mesh)
     views = []
+    lights = [v.spec.light for v in capture.views]
+    policy = shadow_policy(mesh, shadows) if any(lt is not None for lt in lights) else None
     for view in capture.views:
         g = cast_view(scene, mesh, capture.config.camera, view.spec.world_to_camera)
         if not g.hit.any():
             g.warnings.append(f"view {view.index} ({view.spec.file.name}): the mesh does not "
                               "project into this image; check its world_to_camera pose")
+        elif g.hit[0, :].any() or g.hit[-1, :].any() or g.hit[:, 0].any() or g.hit[:, -1].any():
+            g.warnings.append(f"view {view.index} ({view.spec.file.name}): the mesh touches the "
+                              "image border (cropped sample, or a pose/units error)")
+        if view.spec.light is not None:
+            add_lighting(g, view.spec.light, scene, mesh, policy is not None and policy.cast)
         views.append(g)
     if not any(g.hit.any() for g in views):
         raise GeometryError(
             "the mesh does not project into any image: check the poses (world_to_camera), the "
             "camera intrinsics and the mesh units", capture.config.mesh)
-    return Geometry(mesh=mesh, views=views)
+    return Geometry(mesh=mesh, views=views, shadows=policy)
 
 
 def build_samples(capture: Capture, geometry: Geometry,
-                  device: str | torch.device = "cpu") -> Samples:
-    """Gather valid pixels of every view (geometry valid and image mask) into :class:`Samples`."""
-    cols: dict[str, list] = {k: [] for k in ("n", "wo", "rad", "var", "view", "pix", "wi", "lr")}
+                  device: str | torch.device = "cpu", exclude_shadows: bool = True) -> Samples:
+    """Gather valid pixels of every view (geometry valid, image mask, not in shadow) into
+    :class:`Samples`.
+
+    ``exclude_shadows=False`` keeps shadowed pixels (for diagnostics: a fit on them is biased
+    low, see ``tests/test_shadows.py``).
+    """
+    cols: dict[str, list] = {k: [] for k in ("n", "wo", "rad", "var", "view", "pix", "wi", "lr",
+                                             "pos", "tri")}
     have_var = all(v.variance is not None for v in capture.views)
     for view, g in zip(capture.views, geometry.views):
         m = g.valid & view.mask
+        if exclude_shadows and g.shadow is not None:
+            m = m & ~g.shadow
         rows, cs = np.nonzero(m)
         cols["n"].append(g.normal[m])
         cols["wo"].append(g.wo[m])
@@ -150,10 +277,17 @@ def build_samples(capture: Capture, geometry: Geometry,
             cols["var"].append(view.variance[m].astype(np.float64))
         cols["view"].append(np.full(len(rows), view.index))
         cols["pix"].append(np.stack([rows, cs], -1))
-        light: DirectionalLight | None = view.spec.light
+        cols["pos"].append(g.position[m])
+        cols["tri"].append(g.triangle[m])
+        light = view.spec.light
         if light is not None:
-            cols["wi"].append(np.broadcast_to(light.direction, (len(rows), 3)))
-            cols["lr"].append(np.broadcast_to(light.radiance, (len(rows), 3)))
+            if g.wi is not None:
+                cols["wi"].append(g.wi[m])
+                cols["lr"].append(g.light_irradiance[m])
+            else:
+                wi, irr, _ = light_at(light, g.position[m])
+                cols["wi"].append(wi)
+                cols["lr"].append(irr)
     def cat(k, dtype=torch.float64):  # noqa: E306
         return torch.as_tensor(np.concatenate(cols[k]), dtype=dtype, device=device)
     n = cat("n")
@@ -164,4 +298,19 @@ def build_samples(capture: Capture, geometry: Geometry,
                    variance=cat("var") if have_var else None, view=cat("view", torch.long),
                    pixel=cat("pix", torch.long),
                    wi=cat("wi") if has_light else None,
-                   light_radiance=cat("lr") if has_light else None)
+                   light_radiance=cat("lr") if has_light else None,
+                   position=cat("pos"), triangle=cat("tri", torch.long))
+
+
+def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
+    """Geometry from the capture's geometry source: ``geometry.mesh`` (ray casting,
+    :func:`compute_geometry`, ``kwargs`` passed on) or ``geometry.normal_map``
+    (:func:`brdfcap.reconstruct.normal_map.normal_map_geometry`).
+    """
+    if getattr(capture.config, "normal_map", None) is not None:
+        from .normal_map import normal_map_geometry
+
+        return normal_map_geometry(capture)
+    from .mesh import load_mesh
+
+    return compute_geometry(capture, load_mesh(capture.config.mesh), **kwargs)
