@@ -42,23 +42,40 @@ def main(ctx: click.Context, debug: bool) -> None:
 
 def find_captures(root: Path) -> list[Path]:
     """Every directory at or under ``root`` holding a ``capture.toml``, sorted."""
-    if (root / "capture.toml").is_file():
-        return [root]
-    return sorted(p.parent for p in root.rglob("capture.toml"))
+    from brdfcap.batch import find_captures as _find
+
+    return _find(root)
 
 
 @main.command("run")
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True,
-              help="Output directory (results.json, report.html).")
+              help="Output directory (results.json, report.html; per capture and index.html "
+                   "for a batch).")
 @click.option("--lmax", type=click.IntRange(0, 200), default=2, show_default=True,
               help="Highest SH band of the recovered lighting.")
 @click.option("--device", default="cpu", show_default=True, help="torch device for the fit.")
+@click.option("--jobs", "-j", type=click.IntRange(0, 256), default=1, show_default=True,
+              help="Worker processes for a batch (0: one per CPU core).")
+@click.option("--force", is_flag=True,
+              help="Re-run captures whose inputs, options and code version are unchanged.")
+@click.option("--progress/--no-progress", default=None,
+              help="Progress bars (default: only on a terminal).")
+@click.option("--bench", is_flag=True,
+              help="Also run the accuracy-vs-time benchmark (brdfcap bench, default grid) and "
+                   "embed its table and Pareto plot in the reports and the index.")
 @click.option("--debug", "debug_local", is_flag=True, help="Show tracebacks.")
 @click.pass_obj
-def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, debug_local: bool) -> None:
-    """Run the pipeline on a capture directory (or every capture under PATH)."""
-    from brdfcap.pipeline import RunOptions, run_capture
+def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, jobs: int, force: bool,
+            progress: bool | None, bench: bool, debug_local: bool) -> None:
+    """Run the pipeline on a capture directory, or on every capture under PATH (a batch).
+
+    A batch writes OUT/<capture path>/ per capture plus OUT/index.html and OUT/batch.json;
+    captures whose inputs, options and code are unchanged are skipped (--force re-runs them).
+    Exit status 1 when any capture failed.
+    """
+    from brdfcap.batch import run_batch
+    from brdfcap.pipeline import RunOptions
 
     debug = obj.debug or debug_local
     if not path.exists():
@@ -66,29 +83,40 @@ def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, debug_loca
     captures = find_captures(path)
     if not captures:
         _fail(BrdfcapError("no capture.toml found at or under this directory", path), debug)
-    opts = RunOptions(lmax=lmax, device=device)
     single = len(captures) == 1 and captures[0] == path
-    failed = 0
-    for cap in captures:
-        dest = out if single else out / cap.relative_to(path)
-        try:
-            outcome = run_capture(cap, dest, opts)
-            click.echo(f"ok: {cap} -> {outcome.report_path}")
-        except BrdfcapError as exc:
-            failed += 1
-            if single:
-                _fail(exc, debug)
-            click.echo(f"error: {exc}", err=True)
-        except Exception as exc:  # a bug, not a user error: keep the batch going
-            failed += 1
-            if single:
-                if debug:
-                    raise
-                _fail(RuntimeError(f"{cap}: internal error {type(exc).__name__}: {exc} "
-                                   "(run with --debug for the traceback)"), False)
-            click.echo(f"error: {cap}: internal error {type(exc).__name__}: {exc}", err=True)
-    if failed:
-        click.echo(f"{failed} of {len(captures)} capture(s) failed", err=True)
+    opts = RunOptions(lmax=lmax, device=device)
+    cli = {"path": str(path), "out": str(out), "lmax": lmax, "device": device, "jobs": jobs,
+           "force": force, "progress": progress, "bench": bench, "debug": debug}
+    extras, hash_extra = {}, {}
+    if bench:
+        from brdfcap.cmd_bench import bench_for_report
+
+        click.echo("running the accuracy-vs-time benchmark (default grid) ...", err=True)
+        extras["bench"] = bench_for_report()
+        hash_extra["bench"] = True
+    try:
+        outcome = run_batch(path, out, opts, jobs=jobs, force=force, progress=progress, cli=cli,
+                            report_extras=extras, hash_extra=hash_extra,
+                            echo=None if single else click.echo)
+    except KeyboardInterrupt:
+        click.echo("interrupted: finished captures are complete; re-run to do the rest",
+                   err=True)
+        sys.exit(130)
+    if single:
+        rec = outcome.records[0]
+        if rec.status == "failed":
+            if debug and rec.traceback:
+                click.echo(rec.traceback, err=True)
+            _fail(RuntimeError(rec.error), False)
+        click.echo(("skipped (unchanged; --force to re-run): " if rec.status == "skipped"
+                    else "ok: ") + f"{rec.capture_dir} -> {Path(rec.out_dir) / 'report.html'}")
+        return
+    n = len(outcome.records)
+    click.echo(f"{outcome.count('ok')} ran, {outcome.count('skipped')} skipped (unchanged), "
+               f"{outcome.count('failed')} failed of {n} capture(s) in {outcome.seconds:.1f} s; "
+               f"index: {outcome.index_path}")
+    if outcome.failed:
+        click.echo(f"{len(outcome.failed)} of {n} capture(s) failed", err=True)
         sys.exit(1)
 
 
@@ -138,5 +166,28 @@ def demo_cmd(obj: _Ctx, out: Path, lmax: int) -> None:
     click.echo(f"results: {outcome.results_path}")
 
 
+from brdfcap.cmd_diligent import import_diligent_cmd  # noqa: E402  (DiLiGenT import, issue 8)
+
+main.add_command(import_diligent_cmd)
+
+def entry() -> None:
+    """Console-script entry point: run :func:`main`, then exit without interpreter teardown.
+
+    All outputs are closed and renamed into place before this returns. Skipping the teardown
+    (``os._exit``) avoids spurious "nanobind: leaked instance" messages that OpenImageIO's
+    bindings print at shutdown when colour-science still holds OIIO type objects.
+    """
+    import os
+
+    code = 0
+    try:
+        main(standalone_mode=True)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    entry()
