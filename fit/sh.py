@@ -66,12 +66,16 @@ float32 errors per ``lmax`` are in ``docs/sh.md``.
 from __future__ import annotations
 
 import math
+import os
 from functools import lru_cache
 
 import torch
 
 __all__ = [
     "FLOAT32_LMAX",
+    "SPHERICART_LMAX",
+    "set_sh_backend",
+    "get_sh_backend",
     "num_coeffs",
     "sh_index",
     "band_of_index",
@@ -88,6 +92,12 @@ __all__ = [
 
 #: Highest band computed in float32 for float32 inputs (float64 internally above it).
 FLOAT32_LMAX = 48
+#: Highest band for which the optional sphericart backend is trusted, per dtype: measured in
+#: ``tests/test_sh.py::test_sphericart_breakdown`` (sphericart 2.0.4 returns O(1) errors near
+#: the poles from lmax 19 in float32 and from lmax ~90 in float64; see ``docs/sh.md``).
+SPHERICART_LMAX = {torch.float32: 16, torch.float64: 64}
+_BACKENDS = ("auto", "torch")
+_backend = os.environ.get("BRDFCAP_SH_BACKEND", "auto")
 #: Above this band float64 seeds are scaled by 2**_SCALE_EXP against underflow near the poles.
 _SCALE_LMAX = 600
 _SCALE_EXP = 600
@@ -96,7 +106,7 @@ _SCALE_EXP = 600
 #: makes fewer passes over memory.
 _DIAGONAL_MAX_POINTS = 8192
 #: Points per block in the per-column recurrence (keeps the working rows in cache).
-_BLOCK_POINTS = 32768
+_BLOCK_POINTS = 65536
 
 
 def num_coeffs(lmax: int) -> int:
@@ -315,7 +325,7 @@ class _RealSH(torch.autograd.Function):
         out = _table(x, y, z, lmax)
         ctx.lmax = lmax
         ctx.save_for_backward(d)
-        return out.reshape(*d.shape[:-1], -1).to(d.dtype)
+        return out.reshape(*d.shape[:-1], num_coeffs(lmax)).to(d.dtype)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -339,6 +349,50 @@ class _RealSH(torch.autograd.Function):
         gz = (g * r[:, shift]) @ wz
         grad = torch.stack((gx, gy, gz), dim=-1).reshape(d.shape).to(d.dtype)
         return grad, None
+
+
+def set_sh_backend(name: str) -> None:
+    """Choose the forward evaluator of :func:`real_sh`: ``"auto"`` or ``"torch"``.
+
+    ``"auto"`` (default, or env ``BRDFCAP_SH_BACKEND``) uses sphericart-torch for forward-only
+    calls (no gradient required) with float32 ``lmax <= 16`` or float64 ``lmax <= 64`` when it
+    is installed, because ``bench/sh_eval.py`` measures it faster there and its error against
+    this engine is at rounding level; everything else, and every call that needs gradients,
+    runs the torch engine of this module. ``"torch"`` always runs the torch engine.
+    """
+    if name not in _BACKENDS:
+        raise ValueError(f"unknown SH backend {name!r}; valid: {', '.join(_BACKENDS)}")
+    global _backend
+    _backend = name
+
+
+def get_sh_backend() -> str:
+    """The current :func:`set_sh_backend` choice."""
+    return _backend
+
+
+@lru_cache(maxsize=1)
+def _sphericart():
+    try:
+        import sphericart.torch as sct
+    except Exception:  # noqa: BLE001 - optional dependency; any import failure means "absent"
+        return None
+    return sct
+
+
+@lru_cache(maxsize=16)
+def _sphericart_calc(lmax: int):
+    return _sphericart().SphericalHarmonics(lmax)
+
+
+def _use_sphericart(d: torch.Tensor, lmax: int) -> bool:
+    if _backend != "auto" or d.dtype not in SPHERICART_LMAX or lmax > SPHERICART_LMAX[d.dtype]:
+        return False
+    if d.requires_grad and torch.is_grad_enabled():
+        return False
+    if d.device.type not in ("cpu", "cuda") or d.numel() == 0:
+        return False
+    return _sphericart() is not None
 
 
 def real_sh(directions: torch.Tensor, lmax: int) -> torch.Tensor:
@@ -366,6 +420,11 @@ def real_sh(directions: torch.Tensor, lmax: int) -> torch.Tensor:
     finite at the poles. Compute precision: float64, or float32 for float32 inputs with
     ``lmax <= FLOAT32_LMAX``.
 
+    Backend: forward-only calls at low ``lmax`` may be served by sphericart-torch (same
+    convention, checked to rounding level; see :func:`set_sh_backend`). That path
+    re-normalises the input, so pass unit vectors: for non-unit input the value is defined
+    only for the torch engine (the polynomial of the module Notes).
+
     Examples
     --------
     >>> import torch
@@ -378,6 +437,10 @@ def real_sh(directions: torch.Tensor, lmax: int) -> torch.Tensor:
     if lmax < 0:
         raise ValueError(f"lmax must be >= 0, got {lmax}")
     _compute_dtype(directions.dtype, lmax)  # validates dtype
+    if _use_sphericart(directions, lmax):
+        flat = directions.reshape(-1, 3)
+        out = _sphericart_calc(int(lmax)).compute(flat.contiguous())
+        return out.reshape(*directions.shape[:-1], out.shape[-1])
     return _RealSH.apply(directions, int(lmax))
 
 
