@@ -12,6 +12,7 @@ import platform
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -30,8 +31,10 @@ from brdfcap.reconstruct.geometry import Geometry, Samples, build_samples, compu
 from brdfcap.reconstruct.mesh import load_mesh
 from brdfcap.reports import figures as F
 from brdfcap.reports.html import ReportInputs, write_report
+from brdfcap.results_io import write_coefficients_csv
 
-__all__ = ["RunOptions", "RunOutcome", "run_capture", "RESULTS_FORMAT", "versions"]
+__all__ = ["RunOptions", "RunContext", "RunOutcome", "run_capture", "RESULTS_FORMAT",
+           "versions"]
 
 RESULTS_FORMAT = "brdfcap-results/1"
 
@@ -50,6 +53,22 @@ class RunOptions:
 
     lmax: int = 2
     device: str = "cpu"
+
+
+@dataclass
+class RunContext:
+    """How a run was invoked; changes no number (``brdfcap.batch`` fills it).
+
+    ``provenance``: hashes of inputs/options/code (:func:`brdfcap.batch.provenance`), computed
+    here when absent; ``config``: the configuration record written as ``config.json``;
+    ``on_stage``: called with each stage name as it starts (progress bars);
+    ``report_extras``: extra report sections (``{"bench": ...}``).
+    """
+
+    provenance: dict | None = None
+    config: dict | None = None
+    on_stage: Callable[[str], None] | None = None
+    report_extras: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -135,7 +154,8 @@ def _summary(results: dict, lighting: SHFit | None, albedo_fit: AlbedoFit | None
 
 
 def run_capture(capture_dir: str | Path, out_dir: str | Path,
-                options: RunOptions | None = None) -> RunOutcome:
+                options: RunOptions | None = None,
+                context: RunContext | None = None) -> RunOutcome:
     """Run the full pipeline on one capture directory and write its outputs.
 
     Writes ``out_dir/results.json`` and ``out_dir/report.html`` atomically (the report last but
@@ -147,12 +167,20 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         Any user-facing problem, with the file and the fix named.
     """
     opts = options or RunOptions()
+    ctx = context or RunContext()
+    stage = ctx.on_stage or (lambda name: None)
+    if ctx.provenance is None:
+        from brdfcap.batch import provenance
+
+        ctx.provenance = provenance(capture_dir, opts)
     out = Path(out_dir)
     timings: dict[str, float] = {}
+    stage("capture")
     t0 = time.perf_counter()
     cap = load_capture(capture_dir)
     timings["capture"] = time.perf_counter() - t0
 
+    stage("reconstruct")
     t0 = time.perf_counter()
     mesh = load_mesh(cap.config.mesh)
     geom: Geometry = compute_geometry(cap, mesh)
@@ -165,6 +193,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
                        cap.config.toml_path)
 
+    stage("fit")
     t0 = time.perf_counter()
     lighting, albedo_fit = None, None
     alb_known = None if cap.config.albedo is None else torch.as_tensor(cap.config.albedo)
@@ -185,6 +214,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     pred = _predict(samples, lighting, albedo_fit, albedo.to(samples.normal.device))
     timings["fit"] = time.perf_counter() - t0
 
+    stage("report")
     t0 = time.perf_counter()
     resid = (samples.radiance - pred)
     rms = float(resid.pow(2).mean().sqrt())
@@ -202,6 +232,9 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         "fit": {"n_samples": len(samples), "residual_rms": rms, "residual_rel": rel},
         "images": [v.info for v in cap.views],
         "warnings": warnings,
+        "provenance": ctx.provenance,
+        "outputs": {"report": "report.html", "coefficients": "coefficients.csv",
+                    "config": "config.json"},
     }
     if lighting is not None:
         results["lighting"] = {
@@ -264,8 +297,13 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     results = _json_safe(results)
     report_path = write_report(out / "report.html",
                                ReportInputs(results=results, figures=figs, summary=summary,
-                                            warnings=warnings))
-    results_path = write_json_atomic(out / "results.json", results)
+                                            warnings=warnings, extras=ctx.report_extras))
+    write_coefficients_csv(out / "coefficients.csv", results)
+    from brdfcap.batch import config_record
+
+    write_json_atomic(out / "config.json",
+                      ctx.config or config_record(opts, None, ctx.provenance))
+    results_path = write_json_atomic(out / "results.json", results)  # last: marks completion
     return RunOutcome(results=results, results_path=results_path, report_path=report_path,
                       capture=cap, samples=samples, lighting=lighting, albedo=albedo_fit,
                       warnings=warnings)

@@ -21,6 +21,7 @@ class ReportInputs:
     figures: dict[str, str]
     summary: list[str]
     warnings: list[str] = field(default_factory=list)
+    extras: dict = field(default_factory=dict)  # optional sections, e.g. {"bench": {...}}
 
 
 def _fmt(v) -> str:
@@ -60,7 +61,8 @@ def render_report(inp: ReportInputs) -> str:
                 keys.append(k)
     tpl = _env().get_template("report.html")
     return tpl.render(r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings,
-                      coef_rows=rows, chain_keys=keys, fmt=_fmt)
+                      coef_rows=rows, chain_keys=keys, fmt=_fmt,
+                      extras=inp.extras)
 
 
 def write_report(path: str | Path, inp: ReportInputs) -> Path:
