@@ -27,8 +27,7 @@ from brdfcap.fit.lighting import (REL_STDERR_LIMIT, RESOLUTION_LIMIT, AlbedoFit,
                                   fit_albedo_directional, fit_lighting_lambertian)
 from brdfcap.fit.render import lambertian_radiance_directional, lambertian_radiance_sh
 from brdfcap.fit.sh import band_of_index
-from brdfcap.reconstruct.geometry import Geometry, Samples, build_samples, compute_geometry
-from brdfcap.reconstruct.mesh import load_mesh
+from brdfcap.reconstruct.geometry import Geometry, Samples, build_samples, compute_capture_geometry
 from brdfcap.reports import figures as F
 from brdfcap.reports.html import ReportInputs, write_report
 from brdfcap.results_io import write_coefficients_csv
@@ -182,11 +181,15 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
 
     stage("reconstruct")
     t0 = time.perf_counter()
-    mesh = load_mesh(cap.config.mesh)
-    geom: Geometry = compute_geometry(cap, mesh)
+    geom: Geometry = compute_capture_geometry(cap)  # mesh or normal map (capture.toml)
+    geom_warnings: list[str] = []
+    if cap.config.geometry_source == "normal_map":
+        from brdfcap.reconstruct.normal_map import apply_frame_check
+
+        geom_warnings = apply_frame_check(cap, geom)  # raises on a wrong normals frame
     samples = build_samples(cap, geom, device=opts.device)
     timings["reconstruct"] = time.perf_counter() - t0
-    warnings = list(cap.config.warnings)
+    warnings = list(cap.config.warnings) + geom_warnings
     for g in geom.views:
         warnings += g.warnings
     if len(samples) == 0:
@@ -212,6 +215,12 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
                                             samples.radiance, samples.variance)
         albedo = albedo_fit.albedo
     pred = _predict(samples, lighting, albedo_fit, albedo.to(samples.normal.device))
+    brdf_meas = None
+    if cap.config.geometry_source == "normal_map" and samples.wi is not None:
+        from brdfcap.fit.diligent_fit import measure_brdf  # docs/diligent.md
+
+        brdf_meas = measure_brdf(samples, (cap.config.camera.height, cap.config.camera.width))
+        pred = torch.as_tensor(brdf_meas.phong.prediction, dtype=pred.dtype, device=pred.device)
     timings["fit"] = time.perf_counter() - t0
 
     stage("report")
@@ -290,7 +299,13 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         filt = lambertian_filter(lighting.lmax).numpy()
         figs["spectrum"] = F.fig_to_data_uri(F.spectrum_figure(
             lighting.bands, energy, eerr, filt / filt[0], lighting.ill_conditioned_from_l))
+    if brdf_meas is not None:
+        from brdfcap.reports.brdf_figures import attach_brdf_measurement, brdf_summary_lines
+
+        attach_brdf_measurement(results, figs, brdf_meas, geom, out)
     summary = _summary(results, lighting, albedo_fit)
+    if brdf_meas is not None:
+        summary += brdf_summary_lines(brdf_meas, geom)
     results["summary"] = summary
     timings["report"] = time.perf_counter() - t0
     results["timings_s"] = timings

@@ -41,7 +41,7 @@ def read_integer_image(path: str | Path) -> tuple[np.ndarray, int]:
         data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
     finally:
         inp.close()
-    if fmt != oiio.TypeDesc(oiio.UINT16):
+    if str(fmt) != "uint16":
         raise CaptureError(f"integer image has pixel type {fmt}; only 16-bit linear images are "
                            "accepted (an 8-bit PNG is display-encoded: convert to EXR)", path)
     if data is None:

@@ -32,7 +32,7 @@ from .camera import camera_rays
 from .geometry import GRAZING_COS, Geometry, ViewGeometry
 
 __all__ = ["NormalMap", "NormalMapGeometry", "FrameCheck", "load_normal_map",
-           "normal_map_geometry", "check_normal_frame", "FRAME_CANDIDATES",
+           "normal_map_geometry", "check_normal_frame", "apply_frame_check", "FRAME_CANDIDATES",
            "FRAME_MIN_ANGLE_DEG", "FRAME_RATIO"]
 
 #: Candidate frame mistakes tested by :func:`check_normal_frame`: name -> (3, 3) matrix applied
@@ -247,3 +247,34 @@ def check_normal_frame(capture: Capture, geometry: Geometry,
            f"better than as given ({g:.1f}°). Fix the normal map's axes (e.g. image rows grow "
            "downward but the frame's y points up) or the light directions")
     return FrameCheck(med, best, int(enough.sum()), "wrong_frame", msg)
+
+
+def apply_frame_check(capture: Capture, geometry: NormalMapGeometry) -> list[str]:
+    """Run :func:`check_normal_frame` as ``geometry.frame_check`` in capture.toml asks.
+
+    ``"error"`` (default) raises on a wrong frame, ``"warn"`` returns a loud warning, ``"off"``
+    skips the check. The outcome is stored on ``geometry.frame_check``.
+
+    Returns
+    -------
+    list of str
+        Warnings for the report.
+
+    Raises
+    ------
+    GeometryError
+        ``frame_check = "error"`` and the normals are in the wrong frame.
+    """
+    mode = capture.config.frame_check
+    if mode == "off":
+        return []
+    fc = check_normal_frame(capture, geometry)
+    geometry.frame_check = fc
+    if fc.verdict == "wrong_frame":
+        if mode == "error":
+            raise GeometryError(fc.message + " (set geometry.frame_check = \"warn\" to run "
+                                "anyway)", capture.config.normal_map)
+        return ["NORMALS FRAME CHECK FAILED: " + fc.message]
+    if fc.verdict == "inconsistent":
+        return ["normals frame check: " + fc.message]
+    return []

@@ -1,0 +1,183 @@
+"""Report pieces for a measured BRDF: albedo map, BRDF slices vs samples, SH-domain ρ̂ spectrum.
+
+Used by the pipeline for directional-light captures whose BRDF is measured by
+:func:`brdfcap.fit.diligent_fit.measure_brdf` (DiLiGenT-layout captures, ``docs/diligent.md``).
+Figures are returned as matplotlib figures; :func:`attach_brdf_measurement` turns them into data
+URIs, writes the albedo map next to ``results.json`` and fills ``results["brdf"]``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .figures import display_encode, fig_to_data_uri, plt
+
+__all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_brdf_measurement",
+           "brdf_summary_lines"]
+
+_COLOURS = ("tab:red", "tab:green", "tab:blue")
+
+
+def albedo_map_figure(albedo_map: np.ndarray, stderr_map: np.ndarray | None = None):
+    """Recovered diffuse albedo ``k_d`` per pixel (linear values shown sRGB-encoded, white = 1).
+
+    ``albedo_map``: ``(H, W, 3)``, NaN where no pixel was fitted (shown black).
+    """
+    a = np.nan_to_num(albedo_map, nan=0.0)
+    ncol = 2 if stderr_map is not None else 1
+    fig, axes = plt.subplots(1, ncol, figsize=(3.4 * ncol, 3.2), squeeze=False)
+    axes[0, 0].imshow(display_encode(a, white=max(1.0, float(np.nanmax(albedo_map, initial=0)))))
+    axes[0, 0].set_title("diffuse albedo k_d (display-encoded, white = 1)", fontsize=8)
+    if stderr_map is not None:
+        ratio = stderr_map / np.where(albedo_map > 0, albedo_map, np.nan)
+        fitted = np.isfinite(ratio).any(-1)
+        rel = np.full(fitted.shape, np.nan)
+        rel[fitted] = np.nanmean(ratio[fitted], axis=-1)
+        im = axes[0, 1].imshow(rel, cmap="viridis")
+        axes[0, 1].set_title("relative std. error (mean over RGB)", fontsize=8)
+        fig.colorbar(im, ax=axes[0, 1], fraction=0.046)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+    return fig
+
+
+def _binned(x, y, edges):
+    idx = np.digitize(x, edges) - 1
+    cen, mean, sd = [], [], []
+    for k in range(len(edges) - 1):
+        sel = idx == k
+        if sel.sum() >= 3:
+            cen.append(0.5 * (edges[k] + edges[k + 1]))
+            mean.append(y[sel].mean(0))
+            sd.append(y[sel].std(0))
+    return np.array(cen), np.array(mean), np.array(sd)
+
+
+def brdf_slice_figure(meas):
+    """Specular slice ``B_spec/E`` vs the angle between ``r`` and ``ωi``, and diffuse slice.
+
+    Left: measured specular samples (fitted diffuse term subtracted, per channel; binned mean ±
+    s.d.) against the fitted Phong lobe ``k_s (s+1)/(2π) cos^s α`` and against the truncated
+    SH-domain reconstruction ``Σ_l sqrt((2l+1)/4π) ρ̂_l P_l(cos α)``. Right: diffuse slice, the
+    measured ``(B - B_spec)/(E k_d/π)`` against ``n·ωi`` (ideal Lambertian: the identity).
+    """
+    from brdfcap.fit.diligent_fit import _legendre
+
+    p = meas.phong
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.4))
+    x = np.clip(meas.slice_x, -1, 1)
+    alpha = np.degrees(np.arccos(x))
+    edges = np.linspace(0, 90, 46)
+    grid = np.linspace(0, 90, 400)
+    cg = np.cos(np.radians(grid))
+    ls = np.arange(meas.sh.lmax + 1)
+    pl = _legendre(cg, meas.sh.lmax) * np.sqrt((2 * ls + 1) / (4 * math.pi))[:, None]
+    ax = axes[0]
+    for c in range(meas.slice_y.shape[1]):
+        col = _COLOURS[c % 3]
+        cen, mean, sd = _binned(alpha, meas.slice_y[:, c], edges)
+        if len(cen):
+            ax.errorbar(cen, mean, yerr=sd, fmt="o", ms=2.5, color=col, alpha=0.7,
+                        label=f"measured {'RGB'[c % 3]} (bin mean ± s.d.)")
+        lobe = p.ks[c] * (p.s + 1) / (2 * math.pi) * cg**p.s
+        ax.plot(grid, lobe, "-", color=col, lw=1.2, label=f"Phong fit {'RGB'[c % 3]}")
+        ax.plot(grid, meas.sh.rho_hat[:, c] @ pl, ":", color=col, lw=1.0,
+                label=f"SH ρ̂ (l ≤ {meas.sh.lmax}) {'RGB'[c % 3]}")
+    ax.set_yscale("symlog", linthresh=1e-3)
+    ax.set_xlabel("angle between reflected view r and light ωi (deg)")
+    ax.set_ylabel("specular B / E (1/sr)")
+    ax.set_title(f"specular slice: k_s = {np.round(p.ks, 4).tolist()}, s = {p.s:.4g}",
+                 fontsize=8)
+    ax.legend(fontsize=5.5, ncol=3)
+    ax = axes[1]
+    cen, mean, sd = _binned(meas.diffuse_cos, meas.diffuse_y.mean(-1), np.linspace(0, 1, 26))
+    if len(cen):
+        ax.errorbar(cen, mean, yerr=sd, fmt="o", ms=3, color="k", label="measured (mean RGB)")
+    ax.plot([0, 1], [0, 1], "r-", lw=1, label="Lambertian: n·ωi")
+    ax.set_xlabel("n·ωi")
+    ax.set_ylabel("(B − B_spec) / (E k_d / π)")
+    ax.set_title("diffuse slice (per-pixel albedo divided out)", fontsize=8)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def brdf_sh_figure(sh):
+    """Measured ``|ρ̂_l|`` ± std. error per band vs the fitted Phong lobe's analytic ``ρ̂_l``;
+    ill-conditioned bands shaded."""
+    fig, ax = plt.subplots(figsize=(6.0, 3.4))
+    ls = np.arange(sh.lmax + 1)
+    for c in range(sh.rho_hat.shape[1]):
+        col = _COLOURS[c % 3]
+        ax.semilogy(ls, np.maximum(np.abs(sh.rho_hat[:, c]), 1e-12), "o", color=col, ms=3,
+                    label=f"|ρ̂_l| measured {'RGB'[c % 3]}")
+        err = np.where(np.isfinite(sh.stderr[:, c]), sh.stderr[:, c], np.nan)
+        ax.semilogy(ls, np.maximum(err, 1e-12), "x:", color=col, alpha=0.6, ms=3,
+                    label=f"std. error {'RGB'[c % 3]}")
+        ax.semilogy(ls, np.maximum(np.abs(sh.analytic[:, c]), 1e-12), "-", color=col, lw=0.8,
+                    alpha=0.8, label=f"Phong fit analytic {'RGB'[c % 3]}")
+    if sh.ill_conditioned_from_l is not None:
+        ax.axvspan(sh.ill_conditioned_from_l - 0.5, sh.lmax + 0.5, color="grey", alpha=0.2,
+                   label=f"ill-conditioned from l = {sh.ill_conditioned_from_l}")
+    ax.set_xlabel("band l")
+    ax.set_ylabel("|ρ̂_l|")
+    ax.set_title("SH-domain BRDF of the specular part (lighting known)", fontsize=9)
+    ax.legend(fontsize=5.5, ncol=3)
+    return fig
+
+
+def brdf_summary_lines(meas, geometry=None) -> list[str]:
+    """Summary bullet points for the report."""
+    p = meas.phong
+    s = ["Lambertian + Phong BRDF (lighting known): median k_d (RGB) = "
+         + ", ".join(f"{a:.4g}" for a in p.kd_median) + f" over {len(p.kd_pixel)} pixels; "
+         "k_s = " + ", ".join(f"{a:.4g} ± {e:.2g}" for a, e in zip(p.ks, p.ks_stderr))
+         + f"; shininess s = {p.s:.4g} ± {p.s_stderr:.2g}; residual {p.residual_rel:.3g} of the "
+         "mean signal."]
+    ill = meas.sh.ill_conditioned_from_l
+    s.append(f"SH-domain ρ̂ of the specular lobe measured to l = {meas.sh.lmax}: "
+             + ("every band determined." if ill is None else
+                f"bands from l = {ill} on are ill-conditioned (sampled r·ωi in "
+                f"[{meas.sh.x_range[0]:.2f}, {meas.sh.x_range[1]:.2f}])."))
+    fc = getattr(geometry, "frame_check", None)
+    if fc is not None:
+        s.append(f"Normal-map frame check: {fc.verdict} — {fc.message}.")
+    return s
+
+
+def attach_brdf_measurement(results: dict, figures: dict, meas, geometry,
+                            out_dir: str | Path) -> None:
+    """Write ``albedo_map.exr`` (+ std. error) into ``out_dir`` and add the BRDF measurement to
+    ``results`` (``results["brdf"]``, the previous global-Lambertian record kept under
+    ``results["brdf"]["lambertian_global"]``) and its figures to ``figures``."""
+    from brdfcap.capture.images import write_image
+
+    out = Path(out_dir)
+    write_image(out / "albedo_map.exr", np.nan_to_num(meas.albedo_map, nan=0.0),
+                attributes={"brdfcap:quantity": "diffuse albedo k_d (0 = not fitted)"})
+    write_image(out / "albedo_stderr_map.exr", np.nan_to_num(meas.albedo_stderr_map, nan=0.0),
+                attributes={"brdfcap:quantity": "std. error of k_d, conditional on ks and s"})
+    prev = results.get("brdf")
+    rec = meas.results()
+    rec["lambertian_global"] = prev
+    results["brdf"] = rec
+    info = getattr(geometry, "info", None)
+    if info is not None:
+        results.setdefault("geometry", {}).update(info)
+    fc = getattr(geometry, "frame_check", None)
+    if fc is not None:
+        results.setdefault("geometry", {})["frame_check"] = fc.as_dict()
+    imgs = results.get("images", [])
+    results["masking"] = {
+        "saturated_in_object": int(sum(i.get("saturated_in_object", 0) for i in imgs)),
+        "dark_in_object": int(sum(i.get("dark_in_object", 0) for i in imgs)),
+        "object_pixel_observations": int(sum(i.get("object_pixels", 0) for i in imgs)),
+    }
+    figures["albedo_map"] = fig_to_data_uri(albedo_map_figure(meas.albedo_map,
+                                                              meas.albedo_stderr_map))
+    figures["brdf_slices"] = fig_to_data_uri(brdf_slice_figure(meas))
+    figures["brdf_sh"] = fig_to_data_uri(brdf_sh_figure(meas.sh))
