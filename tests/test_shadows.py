@@ -29,7 +29,7 @@ def _write_ply(path: Path, mesh) -> Path:
     return path
 
 
-def _scene_toml(mesh_path: Path, distance: float) -> str:
+def _scene_toml(mesh_path: Path, distance: float, noise: str = "") -> str:
     return f"""
 name = "shadow test"
 [geometry]
@@ -43,7 +43,7 @@ kind = "directional"
 direction = [0.2, 0.9, 0.4]
 radiance = [3.0, 3.0, 3.0]
 [[lighting.lights]]
-direction = [-0.7, 0.3, 0.6]
+direction = [-0.9, 0.1, 0.3]
 radiance = [2.0, 2.0, 2.0]
 [camera]
 width = 96
@@ -53,6 +53,7 @@ fov_deg = 30.0
 count = 2
 distance = {distance}
 elevation_deg = 20.0
+{noise}
 """
 
 
@@ -63,7 +64,8 @@ def bunny_capture(tmp_path_factory):
     d = tmp_path_factory.mktemp("bunny")
     m = load_mesh(BUNNY)
     centred = mesh_from_arrays(m.vertices - m.center, m.faces)
-    (d / "scene.toml").write_text(_scene_toml(_write_ply(d / "bunny.ply", centred), 0.45))
+    (d / "scene.toml").write_text(_scene_toml(_write_ply(d / "bunny.ply", centred), 0.45,
+                                                "[noise]\nrelative = 0.01\nread = 0.002\nseed = 3"))
     out = simulate(d / "scene.toml", d / "cap")
     cap = load_capture(out)
     mesh = load_mesh(cap.config.mesh)
@@ -80,8 +82,8 @@ def test_bunny_shadows_cast_and_recorded(bunny_capture):
         assert g.shadow is not None and g.shadow[g.valid].sum() > 20
         # rendered cast shadows are black: the simulator and the reconstruction agree
         lit = g.valid & ~g.shadow & ((g.normal * g.wi).sum(-1) > 0.05)
-        assert (view.radiance[g.valid & g.shadow] == 0).all()
-        assert (view.radiance[lit].min(-1) > 0).all()
+        shaded = view.radiance[g.valid & g.shadow].mean()
+        assert abs(shaded) < 0.01 * view.radiance[lit].mean()  # read noise only
 
 
 def test_shadowed_pixels_excluded_and_fit_unbiased(bunny_capture):
@@ -90,16 +92,17 @@ def test_shadowed_pixels_excluded_and_fit_unbiased(bunny_capture):
     for v, g in enumerate(geom.views):
         pix = s.pixel[s.view == v].numpy()
         assert not g.shadow[pix[:, 0], pix[:, 1]].any()
+    truth = torch.tensor(ALBEDO, dtype=torch.float64)
     fit = fit_albedo_directional(s.normal, s.wi, s.light_radiance, s.radiance, s.variance)
-    assert torch.allclose(fit.albedo, torch.tensor(ALBEDO, dtype=torch.float64), rtol=1e-4)
+    assert ((fit.albedo - truth).abs() < 4 * fit.stderr).all(), (fit.albedo, fit.stderr)
+    assert ((fit.albedo / truth - 1).abs() < 0.005).all()
     # ignoring shadows: dark shadowed pixels are explained by a lower albedo
     s_all = build_samples(cap, geom, exclude_shadows=False)
     assert len(s_all) > len(s)
     biased = fit_albedo_directional(s_all.normal, s_all.wi, s_all.light_radiance,
                                     s_all.radiance, s_all.variance)
-    rel = (biased.albedo / torch.tensor(ALBEDO, dtype=torch.float64) - 1).abs()
-    assert (rel > 0.01).all(), f"shadow-ignoring fit should be biased, got {biased.albedo}"
-    assert (rel > 20 * biased.stderr / biased.albedo).all()  # bias far beyond its error bar
+    assert (biased.albedo < truth * 0.98).all(), f"shadow-ignoring fit: {biased.albedo}"
+    assert ((truth - biased.albedo) > 5 * biased.stderr).all()  # far beyond its error bar
 
 
 def test_convex_mesh_pays_for_no_shadow_rays(tmp_path):
