@@ -438,7 +438,8 @@ class BrdfMeasurement:
 
 
 def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
-                 max_plot: int = 20000, seed: int = 0) -> BrdfMeasurement:
+                 max_plot: int = 20000, max_sh_samples: int = 400000,
+                 seed: int = 0) -> BrdfMeasurement:
     """Parametric fit, albedo map and SH-domain ρ̂ from directional-light :class:`Samples`.
 
     Parameters
@@ -447,6 +448,12 @@ def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
         Must carry ``wi`` and ``light_radiance`` (a directional capture).
     shape : (int, int)
         Image ``(H, W)`` for the albedo map.
+    max_plot : int
+        Samples kept (at random) for the slice plots.
+    max_sh_samples : int
+        The SH-domain ρ̂ is measured on at most this many samples drawn at random (the design
+        matrix is ``N × (lmax+1)`` float64: a full 612×512 DiLiGenT object with 96 lights has
+        ~5e6 samples, 1 GB at lmax 24); costs a factor sqrt(N/max) in its standard errors.
     """
     if samples.wi is None or samples.light_radiance is None:
         raise FitError("BRDF measurement needs known directional lights ([[images]].light)")
@@ -469,9 +476,12 @@ def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
     x = np.einsum("ij,ij->i", r, i)
     dif = kd_s * e * cos_i[:, None] / math.pi
     y = (b - dif) / e
-    wts = e**2 / (1.0 if samples.variance is None else 1.0)
-    sh = measure_brdf_sh(x, y, wts, lmax, analytic=phong_rho_hat(fit.ks, fit.s, lmax))
+    wts = e**2  # y = B_spec / E: uniform weights on B become E² on y
     rng = np.random.default_rng(seed)
+    sub = rng.choice(len(x), size=max_sh_samples, replace=False) if len(x) > max_sh_samples \
+        else slice(None)
+    sh = measure_brdf_sh(x[sub], y[sub], wts[sub], lmax,
+                         analytic=phong_rho_hat(fit.ks, fit.s, lmax))
     take = rng.choice(len(x), size=min(max_plot, len(x)), replace=False) if len(x) else \
         np.zeros(0, np.int64)
     spec = phong_radiance(n[take], o[take], i[take], e[take], np.zeros(nch), fit.ks, fit.s)

@@ -92,7 +92,7 @@ def brdf_slice_figure(meas):
     ax.set_ylabel("specular B / E (1/sr)")
     ax.set_title(f"specular slice: k_s = {np.round(p.ks, 4).tolist()}, s = {p.s:.4g}",
                  fontsize=8)
-    ax.legend(fontsize=5.5, ncol=3)
+    ax.legend(fontsize=5.5, ncol=1, loc="upper right")
     ax = axes[1]
     cen, mean, sd = _binned(meas.diffuse_cos, meas.diffuse_y.mean(-1), np.linspace(0, 1, 26))
     if len(cen):
