@@ -58,6 +58,12 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
     negative beyond noise, or (when ``saturation`` is set in ``capture.toml``) when any channel of
     the *raw pixel value* reaches ``saturation``: a clipped channel no longer measures radiance.
     """
+    from .raw import is_raw_file
+
+    if is_raw_file(spec.file):  # camera raw: capture/raw_load.py, docs "Raw captures"
+        from .raw_load import linearise_raw_view
+
+        return linearise_raw_view(index, spec, config)
     ext = spec.file.suffix.lower()
     if ext not in LINEAR_EXTENSIONS | INTEGER_EXTENSIONS:
         raise CaptureError(
@@ -124,4 +130,7 @@ def load_capture(capture_dir: str | Path) -> Capture:
         raise CaptureError("mask not found; check geometry.mask in capture.toml",
                            config.geometry_mask)
     views = [linearise_view(i, spec, config) for i, spec in enumerate(config.images)]
+    from .raw_load import check_any_decoded
+
+    check_any_decoded(views, config)  # undecodable raw files are skipped unless all are
     return Capture(config=config, views=views)

@@ -369,3 +369,68 @@ def write_flat_field(path: str | Path, shape: tuple[int, int], effects: Sequence
     return write_dng(path, samples, cfa=p.cfa if "cfa" in effects else None, black_level=black,
                      white_level=white, xyz_to_camera=C, shutter=1.0, aperture=p.aperture,
                      iso=p.iso)
+
+
+class RawCaptureWriter:
+    """Writes a simulated capture's views as raw DNGs (used by :func:`brdfcap.capture.simulate`).
+
+    Built from a scene's ``[camera_raw]`` table (``effects`` plus :class:`RawSynthParams`
+    fields); :meth:`from_scene` returns None when the scene has no such table, and the
+    simulator then writes plain linear EXRs.
+    """
+
+    def __init__(self, out_dir: str | Path, effects: Sequence[str], params: RawSynthParams,
+                 source=None):
+        self.out = Path(out_dir)
+        self.effects = validate_effects(effects, source)
+        self.params = params
+        self.rng = np.random.default_rng(params.seed)
+        self.views: list[dict] = []
+        self.flat: str | None = None
+
+    @classmethod
+    def from_scene(cls, doc: dict, out_dir: str | Path, source=None) -> RawCaptureWriter | None:
+        """From the parsed scene TOML; None without ``[camera_raw]``."""
+        tab = doc.get("camera_raw")
+        if tab is None:
+            return None
+        if "noise" in doc or "saturation" in doc:
+            raise CaptureError("a scene with [camera_raw] simulates sensor noise and clipping "
+                               "itself: list 'noise' / 'saturation' in [camera_raw] effects "
+                               "instead of [noise] / saturation", source)
+        effects = tab.get("effects", [])
+        if not isinstance(effects, list):
+            raise CaptureError("[camera_raw] effects must be a list of names", source)
+        return cls(out_dir, effects, RawSynthParams.from_table(tab, source), source)
+
+    def write_view(self, index: int, radiance: np.ndarray) -> dict:
+        """Write view ``index``; return its ``[[images]]`` keys (``file`` and maybe ``raw``)."""
+        rec = write_raw_view(self.out / "images" / f"{index:03d}", radiance, self.effects,
+                             self.params, rng=self.rng)
+        self.views.append({"files": rec["files"], "exposures": rec["exposures"]})
+        main = rec["files"][rec["ev"].index(0.0)] if 0.0 in rec["ev"] else rec["files"][0]
+        entry: dict = {"file": f"images/{main}"}
+        others = [f"images/{f}" for f in rec["files"] if f != main]
+        if others:
+            entry["raw"] = {"bracket": others}
+        if "vignetting" in self.effects and self.flat is None:
+            self.flat = "images/flat.dng"
+            write_flat_field(self.out / self.flat, radiance.shape[:2], self.effects, self.params)
+        self._last = rec
+        return entry
+
+    def tables(self) -> dict:
+        """Extra ``capture.toml`` tables: ``[raw]`` with the flat field when one was written."""
+        return {"raw": {"flat_field": self.flat}} if self.flat else {}
+
+    def record(self) -> dict:
+        """What was simulated, for ``ground_truth.json``."""
+        p = self.params
+        return {"effects": self.effects, "cfa": p.cfa if "cfa" in self.effects else None,
+                "black_level": _levels(self.effects, p)[0],
+                "white_level": _levels(self.effects, p)[1],
+                "xyz_to_camera": getattr(self, "_last", {}).get("xyz_to_camera"),
+                "as_shot_neutral": getattr(self, "_last", {}).get("as_shot_neutral"),
+                "noise_profile": getattr(self, "_last", {}).get("noise_profile"),
+                "vignetting": p.vignetting if "vignetting" in self.effects else None,
+                "flat_field": self.flat, "views": self.views}

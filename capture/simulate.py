@@ -299,19 +299,25 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         pol = shadow_policy(mesh, str(scene.raw.get("simulation", {}).get("shadows", "auto")))
         cast_shadows, shadow_note = pol.cast, pol.reason
     n_shadowed = 0
+    from .raw_synth import RawCaptureWriter
+
+    raw_writer = RawCaptureWriter.from_scene(scene.raw, out, scene.source)  # None: EXRs
     for i, pose in enumerate(poses):
         light = scene.lights[i % len(scene.lights)] if scene.lights else None
         img, ns = _render_view(scene, mesh, rc, pose, light, cast_shadows)
         n_shadowed += ns
         img = img * scene.exposure
-        if scene.noise is not None:
-            sd = np.sqrt(scene.noise.variance(img / scene.exposure)) * scene.exposure
-            img = img + rng.standard_normal(img.shape) * sd
-        if scene.saturation is not None:
-            img = np.minimum(img, scene.saturation)
-        fname = f"images/{i:03d}.exr"
-        write_image(out / fname, img, attributes={"brdfcap:simulated": scene.name})
-        entry = {"file": fname, "world_to_camera": pose, "exposure": scene.exposure}
+        if raw_writer is not None:  # [camera_raw]: raw DNGs through the inverse raw chain
+            entry = {**raw_writer.write_view(i, img / scene.exposure), "world_to_camera": pose}
+        else:
+            if scene.noise is not None:
+                sd = np.sqrt(scene.noise.variance(img / scene.exposure)) * scene.exposure
+                img = img + rng.standard_normal(img.shape) * sd
+            if scene.saturation is not None:
+                img = np.minimum(img, scene.saturation)
+            fname = f"images/{i:03d}.exr"
+            write_image(out / fname, img, attributes={"brdfcap:simulated": scene.name})
+            entry = {"file": fname, "world_to_camera": pose, "exposure": scene.exposure}
         if light is not None and "position" in light:
             entry["light"] = {"position": np.asarray(light["position"], float),
                               "intensity": np.asarray(light.get("intensity", [1, 1, 1]), float)}
@@ -340,6 +346,9 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     top = {"format": "brdfcap/1", "name": scene.name}
     if scene.saturation is not None:
         top["saturation"] = scene.saturation
+    if raw_writer is not None:
+        effects += [f"raw:{e}" for e in ["dng", *raw_writer.effects]]
+        tables.update(raw_writer.tables())
     write_capture_toml(out / "capture.toml", top, tables, images)
     truth = {"scene": str(scene.source), "name": scene.name, "effects": effects,
              "albedo": scene.albedo.tolist(), "lighting_kind": scene.lighting_kind,
@@ -349,6 +358,8 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         truth["lighting"] = {"lmax": int(math.isqrt(scene.light_sh.shape[0])) - 1,
                              "sh": "rh2001-real", "frame": "world",
                              "coefficients": scene.light_sh.tolist()}
+    if raw_writer is not None:
+        truth["camera_raw"] = raw_writer.record()
     tmp = out / "ground_truth.json.tmp"
     tmp.write_text(json.dumps(truth, indent=2))
     tmp.replace(out / "ground_truth.json")
