@@ -283,7 +283,9 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         ren.append(r)
         masks.append(m)
         titles.append(view.spec.file.name)
-    figs = {"thumbnails": F.fig_to_data_uri(F.thumbnails_figure(obs, masks, titles))}
+    sil = [getattr(g, "hit", None) for g in geom.views]  # registration overlay
+    figs = {"thumbnails": F.fig_to_data_uri(F.thumbnails_figure(
+        obs, masks, titles, silhouettes=sil if len(sil) == len(obs) else None))}
     shown = list(range(min(len(obs), 4)))
     figs["residuals"] = F.fig_to_data_uri(F.residual_figure(
         [obs[i] for i in shown], [ren[i] for i in shown], [masks[i] for i in shown],
@@ -298,11 +300,15 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
                          for l in range(lighting.lmax + 1)])
         filt = lambertian_filter(lighting.lmax).numpy()
         figs["spectrum"] = F.fig_to_data_uri(F.spectrum_figure(
-            lighting.bands, energy, eerr, filt / filt[0], lighting.ill_conditioned_from_l))
+            lighting.bands, energy, eerr, filt / filt[0], lighting.ill_conditioned_from_l,
+            predicted_lstar=2))  # seed: Lambertian lighting determined up to l = 2 (R&H 2001)
+        figs.update(F.lighting_figures(c.numpy(), lighting.ill_conditioned_from_l,
+                                       albedo.detach().cpu().tolist()))
     if brdf_meas is not None:
         from brdfcap.reports.brdf_figures import attach_brdf_measurement, brdf_summary_lines
 
         attach_brdf_measurement(results, figs, brdf_meas, geom, out)
+    figs.update(F.brdf_figures(results["brdf"]))  # slices and polar lobes
     summary = _summary(results, lighting, albedo_fit)
     if brdf_meas is not None:
         summary += brdf_summary_lines(brdf_meas, geom)

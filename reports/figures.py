@@ -18,7 +18,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 __all__ = ["fig_to_data_uri", "display_encode", "thumbnails_figure", "residual_figure",
-           "spectrum_figure"]
+           "spectrum_figure", "sh_radiance_latlong", "latlong_lighting_figure",
+           "relit_spheres_figure", "brdf_spec_from_results", "brdf_plots_figure",
+           "lighting_figures", "brdf_figures"]
 
 
 def fig_to_data_uri(fig) -> str:
@@ -41,8 +43,14 @@ def display_encode(img: np.ndarray, white: float | None = None) -> np.ndarray:
     return np.clip(colour.models.eotf_inverse_sRGB(x), 0.0, 1.0)
 
 
-def thumbnails_figure(images: list[np.ndarray], masks: list[np.ndarray], titles: list[str]):
-    """Input photographs with the fit mask outlined (red: pixels not used)."""
+def thumbnails_figure(images: list[np.ndarray], masks: list[np.ndarray], titles: list[str],
+                      silhouettes: list[np.ndarray | None] | None = None):
+    """Input photographs with the fit mask (red tint: pixels not used) and registration overlay.
+
+    ``silhouettes``: per view, the ``(H, W)`` bool mask of pixels whose ray hits the registered
+    mesh; its outline is drawn in cyan, so a mis-registered pose shows as an outline off the
+    object in the photograph.
+    """
     n = len(images)
     cols = min(n, 6)
     rows = math.ceil(n / cols)
@@ -57,7 +65,13 @@ def thumbnails_figure(images: list[np.ndarray], masks: list[np.ndarray], titles:
         overlay[~m] = 0.6 * overlay[~m] + 0.4 * np.array([0.8, 0.1, 0.1])
         ax.imshow(overlay)
         ax.set_title(t, fontsize=8)
-    fig.suptitle("Inputs (red tint: pixels not used by the fit)", fontsize=9)
+    drawn = False
+    for ax, sil in zip(axes.ravel(), silhouettes or []):
+        if sil is not None and np.any(sil) and not np.all(sil):
+            ax.contour(np.asarray(sil, float), levels=[0.5], colors="cyan", linewidths=0.8)
+            drawn = True
+    fig.suptitle("Inputs (red tint: pixels not used by the fit"
+                 + ("; cyan: outline of the registered mesh)" if drawn else ")"), fontsize=9)
     return fig
 
 
@@ -112,12 +126,223 @@ def spectrum_figure(bands: list[dict], energy: np.ndarray, energy_err: np.ndarra
     if ill_from is not None:
         ax.axvspan(ill_from - 0.5, lmax + 0.5, color="grey", alpha=0.2,
                    label=f"ill-conditioned from l = {ill_from}")
-    if predicted_lstar is not None:
-        ax.axvline(predicted_lstar, color="k", lw=1, ls="-.", label=f"predicted l* = "
-                   f"{predicted_lstar:g}")
+    if predicted_lstar is not None:  # the seed's prediction: bands > l* ill-conditioned
+        ax.axvline(predicted_lstar + 0.5, color="k", lw=1, ls="-.",
+                   label=f"seed prediction: ill-conditioned beyond l = {predicted_lstar:g}")
     ax.set_xlabel("band l")
     ax.set_ylabel("RMS over m")
     ax.set_xticks(ls)
     ax.legend(fontsize=6, ncol=2)
     ax.set_title("Per-band lighting spectrum", fontsize=9)
     return fig
+
+
+# --------------------------------------------------------------------------------------------
+# lighting: lat-long image and re-lit spheres
+# --------------------------------------------------------------------------------------------
+
+def sh_radiance_latlong(coefficients: np.ndarray, height: int = 64) -> np.ndarray:
+    """Radiance ``L(ω) = Σ L_lm Y_lm(ω)`` of SH lighting on a lat-long grid ``(H, 2H, C)``.
+
+    Rows are ``θ ∈ (0, π)`` from +z (top row = up), columns ``φ ∈ [0, 2π)`` from +x toward +y,
+    pixel centres (``docs/conventions.md``). ``coefficients``: ``((lmax+1)², C)``.
+    """
+    import torch
+
+    from brdfcap.fit.sh import directions_from_angles, real_sh
+
+    c = torch.as_tensor(np.asarray(coefficients, np.float64))
+    lmax = int(math.isqrt(c.shape[0])) - 1
+    th = (torch.arange(height, dtype=torch.float64) + 0.5) * math.pi / height
+    ph = (torch.arange(2 * height, dtype=torch.float64) + 0.5) * math.pi / height
+    T, P = torch.meshgrid(th, ph, indexing="ij")
+    d = directions_from_angles(T, P)
+    return (real_sh(d, lmax) @ c).numpy()
+
+
+def _truncate(coefficients: np.ndarray, lmax: int) -> np.ndarray:
+    return np.asarray(coefficients)[: (lmax + 1) ** 2]
+
+
+def latlong_lighting_figure(coefficients: np.ndarray, ill_from: int | None = None,
+                            height: int = 64):
+    """Recovered lighting as a lat-long image (display-encoded; negative ringing shown black).
+
+    With ``ill_from`` set, a second panel shows the lighting truncated to the determined bands
+    ``l < ill_from``: what the data actually say.
+    """
+    lmax = int(math.isqrt(len(coefficients))) - 1
+    panels = [(coefficients, f"all bands l ≤ {lmax}")]
+    if ill_from is not None and 0 < ill_from <= lmax:
+        panels.append((_truncate(coefficients, ill_from - 1),
+                       f"determined bands only, l ≤ {ill_from - 1}"))
+    imgs = [sh_radiance_latlong(c, height) for c, _ in panels]
+    pos = np.concatenate([np.clip(i, 0, None).ravel() for i in imgs])
+    white = float(np.percentile(pos[pos > 0], 99.5)) if np.any(pos > 0) else 1.0
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.0), squeeze=False)
+    for ax, img, (_, title) in zip(axes.ravel(), imgs, panels):
+        neg = float(np.mean(img < 0))
+        ax.imshow(display_encode(np.clip(img, 0, None), white),
+                  extent=(0, 360, 180, 0), aspect="equal")
+        ax.set_xlabel("φ (deg, from +x toward +y)", fontsize=8)
+        ax.set_ylabel("θ (deg, from +z)", fontsize=8)
+        ax.set_xticks([0, 90, 180, 270, 360])
+        ax.set_yticks([0, 45, 90, 135, 180])
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"{title}; {100 * neg:.0f}% of directions < 0 (SH ringing)", fontsize=8)
+    fig.suptitle("Recovered lighting L(ω), world frame, lat-long", fontsize=9)
+    return fig
+
+
+def _sphere_view(n_px: int, view: np.ndarray, up: np.ndarray):
+    """Orthographic view of the unit sphere from direction ``view``: normals, hit mask, ωo."""
+    v = view / np.linalg.norm(view)
+    r = np.cross(up, v)
+    r /= np.linalg.norm(r)
+    u = np.cross(v, r)
+    s = (np.arange(n_px) + 0.5) / n_px * 2 - 1
+    X, Y = np.meshgrid(s, -s)
+    rr = X**2 + Y**2
+    hit = rr < 1
+    z = np.sqrt(np.clip(1 - rr, 0, None))
+    n = X[..., None] * r + Y[..., None] * u + z[..., None] * v
+    return n, hit, v
+
+
+def relit_spheres_figure(coefficients: np.ndarray, albedo=(1.0, 1.0, 1.0), n_px: int = 96):
+    """Spheres re-lit under the recovered lighting, seen from +x, +y and above (+z).
+
+    Top row: a Lambertian sphere with the capture's albedo, ``(a/π) E(n)``. Bottom row: a mirror
+    sphere, ``L(r)`` with ``r = 2 (n·ωo) n − ωo`` (the lighting itself, band-limited to lmax).
+    """
+    import torch
+
+    from brdfcap.fit.render import irradiance_sh
+    from brdfcap.fit.sh import real_sh
+
+    c = torch.as_tensor(np.asarray(coefficients, np.float64))
+    lmax = int(math.isqrt(c.shape[0])) - 1
+    alb = np.asarray(albedo, np.float64)
+    views = [("from +x", np.array([1.0, 0, 0]), np.array([0, 0, 1.0])),
+             ("from +y", np.array([0, 1.0, 0]), np.array([0, 0, 1.0])),
+             ("from above (+z)", np.array([0, 0, 1.0]), np.array([0, 1.0, 0]))]
+    diffuse, mirror, hits = [], [], []
+    for _, v, up in views:
+        n, hit, wo = _sphere_view(n_px, v, up)
+        nt = torch.as_tensor(n[hit])
+        d = np.zeros((n_px, n_px, c.shape[1]))
+        d[hit] = (irradiance_sh(nt, c) / math.pi).numpy() * alb
+        refl = 2 * (nt @ torch.as_tensor(wo))[:, None] * nt - torch.as_tensor(wo)
+        m = np.zeros_like(d)
+        m[hit] = (real_sh(refl, lmax) @ c).numpy()
+        diffuse.append(d)
+        mirror.append(m)
+        hits.append(hit)
+    fig, axes = plt.subplots(2, 3, figsize=(6.6, 4.6))
+    for row, imgs, name in ((0, diffuse, "Lambertian"), (1, mirror, "mirror")):
+        pos = np.concatenate([np.clip(i[h], 0, None).ravel() for i, h in zip(imgs, hits)])
+        white = float(np.percentile(pos[pos > 0], 99)) if np.any(pos > 0) else 1.0
+        for col, (img, (title, _, _)) in enumerate(zip(imgs, views)):
+            ax = axes[row, col]
+            ax.imshow(display_encode(np.clip(img, 0, None), white))
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(title, fontsize=8)
+            if col == 0:
+                ax.set_ylabel(name, fontsize=8)
+    fig.suptitle("Spheres re-lit under the recovered lighting (world +z up)", fontsize=9)
+    return fig
+
+
+def lighting_figures(coefficients: np.ndarray, ill_from: int | None,
+                     albedo=(1.0, 1.0, 1.0)) -> dict[str, str]:
+    """Data URIs ``{"lighting_latlong", "relit_spheres"}`` for the report."""
+    return {"lighting_latlong": fig_to_data_uri(latlong_lighting_figure(coefficients, ill_from)),
+            "relit_spheres": fig_to_data_uri(relit_spheres_figure(coefficients, albedo))}
+
+
+# --------------------------------------------------------------------------------------------
+# BRDF: slices and polar plots
+# --------------------------------------------------------------------------------------------
+
+def brdf_spec_from_results(brdf: dict):
+    """A :class:`brdfcap.fit.brdf_models.BRDFSpec` from ``results.json["brdf"]``, or ``None``.
+
+    Understands ``model`` with ``parameters`` ``kd`` or ``albedo`` (RGB), ``ks``, ``s``,
+    ``sigma``, ``f0``; returns ``None`` for a model it cannot evaluate.
+    """
+    try:
+        from brdfcap.fit.brdf_models import BRDF_MODELS, BRDFSpec
+    except ImportError:  # pragma: no cover - brdf_models not installed
+        return None
+    model = (brdf or {}).get("model")
+    if model not in BRDF_MODELS:
+        return None
+    p = (brdf or {}).get("parameters") or {}
+    kd = p.get("kd", p.get("albedo"))
+    kw = {}
+    if isinstance(kd, list) and kd and all(isinstance(x, (int, float)) for x in kd):
+        kw["kd"] = kd
+    for k in ("ks", "f0"):
+        if isinstance(p.get(k), list):
+            kw[k] = p[k]
+    for k in ("s", "sigma"):
+        if isinstance(p.get(k), (int, float)):
+            kw[k] = float(p[k])
+    try:
+        return BRDFSpec(model=model, **kw)
+    except (ValueError, TypeError):
+        return None
+
+
+def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
+    """BRDF slices ``f(θi; θo)`` in the plane of incidence, and polar lobes ``f cosθi``.
+
+    Slices: for each outgoing elevation ``θo`` (ωo in the x–z plane at φ = 0), ``f`` against the
+    signed incidence angle (positive: ωi on the far side of the normal, i.e. toward the mirror
+    direction). Polar: the reflected-radiance lobe ``f(ωi, ωo) cosθi`` for a unit light, per
+    ``θo``, green channel.
+    """
+    import torch
+
+    from brdfcap.fit.brdf_models import brdf_value
+
+    ti = np.radians(np.linspace(-89.0, 89.0, 357))
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(ti), 3)
+    wi = torch.as_tensor(np.stack([-np.sin(ti), np.zeros_like(ti), np.cos(ti)], -1))
+    fig = plt.figure(figsize=(9.0, 3.4))
+    ax1 = fig.add_subplot(1, 2, 1)
+    ax2 = fig.add_subplot(1, 2, 2, projection="polar")
+    colours = ("tab:red", "tab:green", "tab:blue")
+    styles = ("-", "--", ":", "-.")
+    for j, to in enumerate(theta_o_deg):
+        t = math.radians(to)
+        wo = torch.tensor([[math.sin(t), 0.0, math.cos(t)]], dtype=torch.float64).expand_as(wi)
+        f = brdf_value(spec, n, wi, wo).numpy()
+        for c in range(min(3, f.shape[1])):
+            ax1.plot(np.degrees(ti), f[:, c], styles[j % 4], color=colours[c], lw=1,
+                     label=f"θo = {to:g}°" if c == 1 else None)
+        g = f[:, min(1, f.shape[1] - 1)] * np.cos(ti)
+        ax2.plot(ti, g, styles[j % 4], color="k", lw=1, label=f"θo = {to:g}°")
+    ax1.set_xlabel("θi (deg, signed; + = toward the mirror direction)", fontsize=8)
+    ax1.set_ylabel("f(ωi, ωo)  [1/sr]", fontsize=8)
+    ax1.set_title(f"BRDF slices in the plane of incidence ({spec.model}; R, G, B)", fontsize=9)
+    ax1.legend(fontsize=7)
+    ax1.tick_params(labelsize=7)
+    ax1.set_ylim(bottom=0)
+    ax2.set_theta_zero_location("N")
+    ax2.set_thetamin(-90)
+    ax2.set_thetamax(90)
+    ax2.set_title("lobe f·cosθi (G) vs θi", fontsize=9)
+    ax2.tick_params(labelsize=7)
+    ax2.legend(fontsize=7, loc="lower left")
+    return fig
+
+
+def brdf_figures(brdf: dict) -> dict[str, str]:
+    """Data URI ``{"brdf_plots"}`` for the report, empty when the model cannot be evaluated."""
+    spec = brdf_spec_from_results(brdf)
+    if spec is None:
+        return {}
+    return {"brdf_plots": fig_to_data_uri(brdf_plots_figure(spec))}

@@ -1,0 +1,131 @@
+"""Reports and machine-readable results (issue 7): schema, CSV, report sections, index."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import re
+
+import jsonschema
+import numpy as np
+import pytest
+
+from brdfcap.batch import BatchOutcome, CaptureRecord
+from brdfcap.fit.datasets import GRACE_RH2001
+from brdfcap.reports import figures as F
+from brdfcap.reports.index import render_index
+from brdfcap.results_io import (coefficient_rows, coefficients_csv, load_results_schema,
+                                validate_results)
+
+
+@pytest.fixture(scope="module")
+def run_out(tmp_path_factory):
+    """One tiny capture run through the pipeline (shared by the tests of this module)."""
+    from test_batch import TINY_SCENE  # noqa: F401  (same tiny scene)
+
+    from brdfcap.capture.simulate import simulate
+    from brdfcap.pipeline import RunOptions, run_capture
+
+    d = tmp_path_factory.mktemp("rep")
+    (d / "scene.toml").write_text(TINY_SCENE)
+    cap = simulate(d / "scene.toml", d / "capture")
+    return run_capture(cap, d / "out", RunOptions(lmax=3))
+
+
+def test_results_validate_against_shipped_schema(run_out):
+    """results.json satisfies the packaged schema; a broken record is rejected with its path."""
+    schema = load_results_schema()
+    jsonschema.Draft202012Validator.check_schema(schema)
+    res = json.loads(run_out.results_path.read_text())
+    validate_results(res)
+    bad = json.loads(json.dumps(res))
+    bad["lighting"]["coefficients"] = "not a matrix"
+    with pytest.raises(jsonschema.ValidationError):
+        validate_results(bad)
+    bad = json.loads(json.dumps(res))
+    del bad["provenance"]
+    with pytest.raises(jsonschema.ValidationError, match="provenance"):
+        validate_results(bad)
+
+
+def test_coefficients_csv_round_trips_results(run_out):
+    """Every lighting coefficient and its stderr appear in coefficients.csv with its (l, m)."""
+    res = run_out.results
+    text = (run_out.results_path.parent / "coefficients.csv").read_text()
+    assert text == coefficients_csv(res)
+    rows = list(csv.DictReader(io.StringIO(text)))
+    light = [r for r in rows if r["quantity"] == "lighting"]
+    k = (res["lighting"]["lmax"] + 1) ** 2
+    assert len(light) == 3 * k
+    for r in light:
+        i, c = int(r["index"]), "RGB".index(r["channel"])
+        assert int(r["index"]) == int(r["l"]) * (int(r["l"]) + 1) + int(r["m"])
+        assert float(r["value"]) == res["lighting"]["coefficients"][i][c]
+        e = res["lighting"]["stderr"][i][c]
+        assert (float(r["stderr"]) == e) if e is not None else r["stderr"] == "inf"
+    assert [r["channel"] for r in rows if r["quantity"] == "albedo"] == ["R", "G", "B"]
+
+
+def test_csv_marks_undetermined_coefficients_inf():
+    """A coefficient the data do not determine has stderr inf and determined false."""
+    res = {"lighting": {"coefficients": [[1.0], [0.0]], "stderr": [[0.1], [None]],
+                        "determined": [[True], [False]]}, "brdf": {"parameters": {}}}
+    rows = coefficient_rows(res)
+    assert rows[1]["stderr"] == math.inf and rows[1]["determined"] is False
+    assert "inf,false" in coefficients_csv(res)
+
+
+def test_report_has_every_section_and_no_external_resources(run_out):
+    """Self-contained report: sections in reading order, embedded figures, no network URLs."""
+    html = run_out.report_path.read_text()
+    order = ['id="summary"', 'id="inputs"', 'id="residuals"', 'id="lighting"', 'id="brdf"',
+             'id="linearisation"', 'id="timings"']
+    pos = [html.index(s) for s in order]
+    assert pos == sorted(pos)
+    for alt in ("input thumbnails", "observed, re-rendered", "lat-long", "re-lit",
+                "per-band spectrum", "BRDF slices"):
+        assert re.search(rf'<img src="data:image/png;base64,[^"]+" alt="[^"]*{alt}', html), alt
+    assert not re.search(r'(src|href)="(https?:)?//', html)
+    assert "<details>" in html  # coefficient table folded below the figures
+    assert "seed" in html and "ill-conditioned" in html.lower()
+
+
+def test_latlong_matches_sh_evaluation_at_poles():
+    """The lat-long image is L(ω) = Σ L_lm Y_lm(ω): top row ≈ L(+z) for constant lighting."""
+    c = np.zeros((9, 3))
+    c[0] = 1.0
+    c[2] = 0.5  # Y10 ∝ z: brighter at the top (+z)
+    img = F.sh_radiance_latlong(c, height=16)
+    assert img.shape == (16, 32, 3)
+    y00, y10 = 0.5 / math.sqrt(math.pi), math.sqrt(3 / (4 * math.pi))
+    z_top = math.cos(math.pi / 32)
+    np.testing.assert_allclose(img[0, :, 0], y00 + 0.5 * y10 * z_top, rtol=1e-12)
+    assert img[0, 0, 0] > img[-1, 0, 0]
+
+
+def test_brdf_figure_for_known_models_and_none_for_unknown():
+    """BRDF plots are drawn from results["brdf"]; an unknown model yields no figure."""
+    assert set(F.brdf_figures({"model": "lambertian",
+                               "parameters": {"albedo": [0.5, 0.5, 0.5]}})) == {"brdf_plots"}
+    assert F.brdf_figures({"model": "no-such-model", "parameters": {}}) == {}
+
+
+def test_index_lists_failures_and_sorts(tmp_path):
+    """Index: one row per capture; a failure shows its error; numeric sort keys are present."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "report.html").write_text("<html></html>")
+    recs = [CaptureRecord("a", "/c/a", str(tmp_path / "a"), "a", "ok", 1.5,
+                          summary={"capture": "a", "lmax": 2, "L00": [0.8, 0.4, 0.5],
+                                   "ill_bands": [3], "ill_conditioned_from_l": 3,
+                                   "residual_rel": 0.01, "n_samples": 10, "n_views": 2,
+                                   "warnings": 0, "time_s": 1.2}),
+            CaptureRecord("b", "/c/b", str(tmp_path / "b"), "b", "failed", 0.1,
+                          error="/c/b/images/000.exr: cannot open image <bad>")]
+    html = render_index(BatchOutcome(recs, tmp_path, seconds=2.0), tmp_path)
+    assert 'href="a/report.html"' in html
+    assert "cannot open image &lt;bad&gt;" in html  # escaped
+    assert 'data-sort="0.01"' in html and 'data-type="num"' in html
+    assert re.search(r'<tr class="row-failed">', html)
+    assert "1 failed" in html
