@@ -146,27 +146,6 @@ def _spec_basis(e, logx, s):
     return e * ((s + 1.0) / (2.0 * math.pi) * p)[:, None]
 
 
-def _solve_linear(f, g, b, w, pid, npix):
-    """Closed-form kd per pixel and ks per channel for fixed s (Schur complement)."""
-    nch = b.shape[1]
-    kd = np.zeros((npix, nch))
-    ks = np.zeros(nch)
-    d = np.zeros((npix, nch))
-    for c in range(nch):
-        wc = w[:, c]
-        dp = np.bincount(pid, wc * f[:, c] ** 2, npix)
-        bp = np.bincount(pid, wc * f[:, c] * g[:, c], npix)
-        yp = np.bincount(pid, wc * f[:, c] * b[:, c], npix)
-        ok = dp > 0
-        dps = np.where(ok, dp, 1.0)
-        schur = float((wc * g[:, c] ** 2).sum() - (bp[ok] ** 2 / dps[ok]).sum())
-        rhs = float((wc * g[:, c] * b[:, c]).sum() - (bp[ok] * yp[ok] / dps[ok]).sum())
-        ks[c] = rhs / schur if schur > 1e-300 else 0.0
-        kd[:, c] = np.where(ok, (yp - bp * ks[c]) / dps, 0.0)
-        d[:, c] = dp
-    return kd, ks, d
-
-
 def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None,
                       s_init: float | None = None) -> PhongFit:
     """Fit per-pixel ``k_d`` + global ``(k_s, s)`` to directional-light samples (module doc).
@@ -216,11 +195,34 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
     n, o, i, e, b, w = n[used], o[used], i[used], e[used], b[used], w_all[used]
     f, xp, logx = _bases(n, o, i, e, 0.0)
 
+    # s-independent per-pixel sums, and the specular support (r·ωi > 0) where g(s) != 0: the
+    # 1-D search then costs O(support) per evaluation instead of O(N)
+    nch = b.shape[1]
+    d_pc = np.stack([np.bincount(pid_all, w[:, c] * f[:, c] ** 2, npix) for c in range(nch)], -1)
+    y_pc = np.stack([np.bincount(pid_all, w[:, c] * f[:, c] * b[:, c], npix)
+                     for c in range(nch)], -1)
+    d_safe = np.where(d_pc > 0, d_pc, 1.0)
+    wbb = (w * b * b).sum(0)
+    sup = np.isfinite(logx)
+    pid_s, f_s, b_s, w_s, e_s, lx_s = pid_all[sup], f[sup], b[sup], w[sup], e[sup], logx[sup]
+
     def rss_of(s):
-        g = _spec_basis(e, logx, s)
-        kd, ks, _ = _solve_linear(f, g, b, w, pid_all, npix)
-        pred = kd[pid_all] * f + ks * g
-        return float((w * (b - pred) ** 2).sum()), kd, ks
+        """Weighted RSS at exponent s with kd, ks solved (expanded quadratic form)."""
+        g = e_s * ((s + 1.0) / (2.0 * math.pi) * np.exp(s * lx_s))[:, None]
+        kd = np.zeros((npix, nch))
+        ks = np.zeros(nch)
+        rss = 0.0
+        for c in range(nch):
+            wg = w_s[:, c] * g[:, c]
+            bp = np.bincount(pid_s, wg * f_s[:, c], npix)
+            gg, gb = float((wg * g[:, c]).sum()), float((wg * b_s[:, c]).sum())
+            schur = gg - float((bp * bp / d_safe[:, c]).sum())
+            rhs = gb - float((bp * y_pc[:, c] / d_safe[:, c]).sum())
+            ks[c] = rhs / schur if schur > 1e-300 else 0.0
+            kd[:, c] = np.where(d_pc[:, c] > 0, (y_pc[:, c] - bp * ks[c]) / d_safe[:, c], 0.0)
+            rss += (wbb[c] - 2 * (kd[:, c] * y_pc[:, c]).sum() + (kd[:, c] ** 2 * d_pc[:, c]).sum()
+                    - 2 * ks[c] * gb + 2 * ks[c] * (kd[:, c] * bp).sum() + ks[c] ** 2 * gg)
+        return float(rss), kd, ks
 
     lo, hi = math.log(S_RANGE[0]), math.log(S_RANGE[1])
     profile = []
@@ -238,9 +240,9 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
     opt = minimize_scalar(lambda t: rss_of(math.exp(t))[0], bounds=(a, c), method="bounded",
                           options={"xatol": 1e-6})
     s = float(math.exp(opt.x))
-    rss, kd, ks = rss_of(s)
+    _, kd, ks = rss_of(s)
     g = _spec_basis(e, logx, s)
-    nch = b.shape[1]
+    rss = float((w * (b - kd[pid_all] * f - ks * g) ** 2).sum())  # direct, no cancellation
     dof = max(nu * nch - npix * nch - nch - 1, 1)
     chi2 = rss / dof
     sigma2 = max(chi2, 1.0) if variance is not None else chi2
@@ -284,25 +286,28 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
                     noise_source=src, s_profile=profile)
 
 
-def phong_rho_hat(ks, s: float, lmax: int, nodes: int = 400) -> np.ndarray:
+def phong_rho_hat(ks, s: float, lmax: int) -> np.ndarray:
     r"""Analytic SH-domain ``ρ̂_l`` of the reflection-space Phong lobe ``k_s (s+1)/(2π) x_+^s``.
 
     ``ρ̂_l = sqrt(4π/(2l+1)) · (2l+1)/2 ∫_0^1 k_s (s+1)/(2π) x^s P_l(x) dx`` (Legendre coefficient
-    divided by ``sqrt((2l+1)/(4π))``, module docstring), by Gauss–Legendre quadrature on [0, 1].
+    divided by ``sqrt((2l+1)/(4π))``, module docstring), in closed form by the recursion of
+    ``∫_0^1 x^s P_l(x) dx``.
 
     Returns
     -------
     np.ndarray
         ``(lmax+1, C)``.
     """
-    from numpy.polynomial import legendre as npl
-
-    t, wq = npl.leggauss(nodes)
-    x, wq = 0.5 * (t + 1.0), 0.5 * wq
-    pl = _legendre(x, lmax)  # (L+1, Q)
-    lobe = (s + 1.0) / (2.0 * math.pi) * x**s
+    # I_l = ∫_0^1 x^s P_l(x) dx: I_0 = 1/(s+1), I_1 = 1/(s+2), I_l = (s-l+2)/(s+l+1) I_{l-2}
+    # (from Bonnet's recursion and integration by parts; Gradshteyn & Ryzhik 7.126.2)
+    il = np.zeros(lmax + 1)
+    il[0] = 1.0 / (s + 1.0)
+    if lmax >= 1:
+        il[1] = 1.0 / (s + 2.0)
+    for l in range(2, lmax + 1):
+        il[l] = (s - l + 2.0) / (s + l + 1.0) * il[l - 2]
     ls = np.arange(lmax + 1)
-    gl = (2 * ls + 1) / 2.0 * (pl * (lobe * wq)).sum(-1)
+    gl = (2 * ls + 1) / 2.0 * (s + 1.0) / (2.0 * math.pi) * il
     rho = gl / np.sqrt((2 * ls + 1) / (4 * math.pi))
     return rho[:, None] * np.atleast_1d(_np(ks))[None, :]
 
@@ -438,7 +443,7 @@ class BrdfMeasurement:
 
 
 def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
-                 max_plot: int = 20000, max_sh_samples: int = 400000,
+                 max_plot: int = 20000, max_sh_samples: int = 200000,
                  seed: int = 0) -> BrdfMeasurement:
     """Parametric fit, albedo map and SH-domain ρ̂ from directional-light :class:`Samples`.
 
