@@ -154,6 +154,12 @@ def normal_map_geometry(capture: Capture, nmap: NormalMap | None = None,
                 f"view {v.index} ({v.spec.file.name}) has a different world_to_camera from view "
                 "0: a normal map is registered to one fixed camera, so every image must share "
                 "its pose", cfg.toml_path)
+    for v in capture.views:
+        if v.spec.light is not None and hasattr(v.spec.light, "position"):
+            raise GeometryError(
+                f"view {v.index} ({v.spec.file.name}) has a point light, but a normal map gives "
+                "no surface positions to compute its direction and falloff from: use "
+                "directional lights or a mesh", cfg.toml_path)
     _, d = camera_rays(cam, pose0)
     wo = -d
     cos_o = np.einsum("hwk,hwk->hw", nmap.normal, wo)

@@ -242,3 +242,41 @@ def test_cli_import_diligent(layout, tmp_path):
     assert cfg.images[0].file.is_absolute() and cfg.images[0].file.is_file()
     res = CliRunner().invoke(main, ["import-diligent", str(tmp_path / "nope"), str(tmp_path / "d")])
     assert res.exit_code == 1 and "not a directory" in res.output
+
+
+def test_frame_check_warn_mode_runs_with_a_loud_warning(tmp_path):
+    from brdfcap.pipeline import run_capture
+
+    d = tmp_path / "flip"
+    write_synthetic_diligent(d, size=32, n_lights=24, normals_error="flip_y", **TRUTH)
+    cap = import_diligent(d, tmp_path / "cap", frame_check="warn")
+    out = run_capture(cap, tmp_path / "out")
+    assert any("FRAME CHECK FAILED" in w and "flip_y" in w for w in out.warnings)
+    r = json.loads(out.results_path.read_text())
+    assert r["geometry"]["frame_check"]["verdict"] == "wrong_frame"
+
+
+def test_phong_matches_inverse_rendering_models():
+    """Same reflection-space Phong as ``brdfcap.fit.brdf_models`` (issue 6), in both domains."""
+    bm = pytest.importorskip("brdfcap.fit.brdf_models")
+    import torch
+
+    from brdfcap.fit.diligent_fit import phong_radiance
+
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[:, 2] = np.abs(n[:, 2])
+    wi = rng.normal(size=(500, 3))
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo = np.broadcast_to([0.0, 0.0, 1.0], (500, 3)).copy()
+    e = rng.uniform(0.5, 1.5, size=(500, 3))
+    kd, ks, s = np.array([0.6, 0.5, 0.4]), np.array([0.3, 0.2, 0.1]), 17.0
+    ours = phong_radiance(n, wo, wi, e, kd, ks, s)
+    spec = bm.BRDFSpec(model="phong", kd=torch.tensor(kd), ks=torch.tensor(ks), s=s)
+    t = [torch.tensor(a) for a in (n, wo, wi, e)]
+    np.testing.assert_allclose(ours, bm.render_directional(spec, *t).numpy(), rtol=1e-10,
+                               atol=1e-12)
+    ls = np.arange(9)
+    lam_rho = np.sqrt(4 * math.pi / (2 * ls + 1)) * phong_rho_hat(np.ones(1), s, 8)[:, 0]
+    np.testing.assert_allclose(lam_rho, bm.phong_sh_filter(s, 8).numpy(), rtol=1e-10)
