@@ -95,7 +95,7 @@ WHITE_BALANCES = ("as-shot", "daylight", "none")
 RAW_OPTION_KEYS = frozenset({
     "demosaic", "black_level", "white_level", "saturation_fraction", "white_balance",
     "colour_matrix", "color_matrix", "working_space", "chromatic_adaptation", "shutter",
-    "aperture", "iso", "dark_frame", "flat_field", "noise_profile",
+    "aperture", "iso", "dark_frame", "flat_field", "noise_profile", "demosaic_edge_threshold",
 })
 
 _DNG_ILLUMINANT_D65 = 21
@@ -143,6 +143,10 @@ class RawOptions:
     noise : NoiseModel, optional
         Fallback noise model in *output* (exposure-normalised radiance) units, used when no
         noise profile is known (e.g. the ``[noise]`` table of ``capture.toml``).
+    demosaic_edge_threshold : float or None
+        Interpolated channels whose demosaic footprint spans a relative contrast above this
+        (``(hi - lo) / hi``, default 0.5) are invalid (:func:`_demosaic_edges`); 0 or None
+        turns the check off.
     """
 
     demosaic: str = "linear"
@@ -161,6 +165,7 @@ class RawOptions:
     flat_field: str | Path | None = None
     noise_profile: Sequence | None = None
     noise: NoiseModel | None = None
+    demosaic_edge_threshold: float | None = 0.5
 
     def validate(self, path: str | Path | None = None) -> RawOptions:
         """Check names and ranges; raise :class:`CaptureError` naming ``path`` on a bad value."""
@@ -520,6 +525,35 @@ def _demosaic_linear(x, var, chan, site_ok):
     return out, vout, ok
 
 
+def _demosaic_edges(x, var, chan, radius, threshold):
+    """Interpolated channels whose footprint straddles an edge: ``(H, W, 3)`` bool.
+
+    For each colour, ``hi`` / ``lo`` are the largest / smallest samples of that colour within
+    ``radius``; an interpolated (not measured) value is flagged when ``hi - lo`` exceeds both
+    ``threshold * |hi|`` (a contrast of ``1 / (1 - threshold)`` : 1 across the footprint, which
+    interpolation cannot resolve: a CFA samples each colour at every other pixel at best) and
+    the noise (5 sigma of the difference of two samples, or 0.2% of full scale without a noise
+    model), so that noise alone in dark regions is not taken for an edge. Flagging costs the
+    pixels along silhouettes and sharp texture edges: about one pixel on each side for
+    bilinear, two for LibRaw's algorithms.
+    """
+    size = 2 * radius + 1
+    edge = np.zeros(x.shape + (3,), bool)
+    for c in range(3):
+        m = chan == c
+        hi = ndimage.maximum_filter(np.where(m, x, -np.inf), size=size, mode="mirror")
+        lo = ndimage.minimum_filter(np.where(m, x, np.inf), size=size, mode="mirror")
+        if var is not None:
+            vmax = ndimage.maximum_filter(np.where(m, var, 0.0), size=size, mode="mirror")
+            gate = 5.0 * np.sqrt(2.0 * vmax)
+        else:
+            gate = 2e-3
+        with np.errstate(invalid="ignore"):
+            spread = hi - lo
+            edge[..., c] = (~m) & (spread > threshold * np.abs(hi)) & (spread > gate)
+    return edge
+
+
 def _demosaic_half(x, var, chan, site_ok, path):
     """2x2 superpixels: per channel the mean of the block's samples of that colour."""
     H, W = (x.shape[0] // 2) * 2, (x.shape[1] // 2) * 2
@@ -688,6 +722,7 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
 
         # -- demosaic -------------------------------------------------------------------------
         alg, radius, cross = DEMOSAIC_METHODS[opts.demosaic]
+        edges = None
         if chan is None:  # LinearRaw: no CFA
             if opts.demosaic == "half":
                 x3, var3, ok3 = _box2(x, var, site_ok)
@@ -707,6 +742,8 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
             elif alg is None:
                 x3, var3, ok3 = _demosaic_linear(x, var, chan, site_ok)
                 demosaic = "linear (bilinear, ours)"
+                if opts.demosaic_edge_threshold:
+                    edges = _demosaic_edges(x, var, chan, 1, opts.demosaic_edge_threshold)
             else:
                 xl, var3, _ = _demosaic_linear(x, var, chan, site_ok)
                 x3 = _demosaic_libraw(raw, x, alg)
@@ -717,6 +754,12 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
                 ok3 = np.repeat((~bad)[..., None], 3, axis=2) if cross else \
                     _demosaic_linear(x, None, chan, site_ok)[2]
                 demosaic = f"{opts.demosaic} (LibRaw {alg.name})"
+                if opts.demosaic_edge_threshold:
+                    edges = _demosaic_edges(x, var, chan, radius, opts.demosaic_edge_threshold)
+                    if cross:
+                        edges = np.repeat(edges.any(axis=2)[..., None], 3, axis=2)
+            if edges is not None:
+                ok3 = ok3 & ~edges
 
         # -- colour and exposure ----------------------------------------------------------------
         cam_to_xyz = matrix_camera_to_XYZ(C)
@@ -753,6 +796,10 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
             "saturated_fraction": sat_frac,
             "masked_fraction": float(1.0 - mask.mean()),
             "demosaic": demosaic,
+            "demosaic_edge_threshold": (float(opts.demosaic_edge_threshold) if edges is not None
+                                        else None),
+            "demosaic_edge_fraction": (float(edges.any(axis=2).mean()) if edges is not None
+                                       else 0.0),
             "white_balance": wb.tolist(),
             "white_balance_source": wb_src,
             "xyz_to_camera": C.tolist(),
