@@ -181,6 +181,10 @@ class RawOptions:
         if not 0.0 < float(self.saturation_fraction) <= 1.0:
             raise CaptureError("[raw] saturation_fraction must be in (0, 1], got "
                                f"{self.saturation_fraction}", path)
+        if self.demosaic_edge_threshold is not None and not float(
+                self.demosaic_edge_threshold) >= 0:
+            raise CaptureError("[raw] demosaic_edge_threshold must be >= 0 (0 turns it off), "
+                               f"got {self.demosaic_edge_threshold}", path)
         if self.colour_matrix is not None and np.shape(self.colour_matrix) != (3, 3):
             raise CaptureError("[raw] colour_matrix must be a 3x3 XYZ->camera matrix", path)
         for name in ("exposure", "shutter", "aperture", "iso", "white_level"):

@@ -390,7 +390,7 @@ class RawCaptureWriter:
 
     @classmethod
     def from_scene(cls, doc: dict, out_dir: str | Path, source=None) -> RawCaptureWriter | None:
-        """From the parsed scene TOML; None without ``[camera_raw]``."""
+        """From the parsed scene TOML; None without ``[camera_raw]`` or with no effect listed."""
         tab = doc.get("camera_raw")
         if tab is None:
             return None
@@ -401,6 +401,9 @@ class RawCaptureWriter:
         effects = tab.get("effects", [])
         if not isinstance(effects, list):
             raise CaptureError("[camera_raw] effects must be a list of names", source)
+        validate_effects(effects, source)
+        if not effects:  # nothing raw to simulate: plain linear EXRs
+            return None
         return cls(out_dir, effects, RawSynthParams.from_table(tab, source), source)
 
     def write_view(self, index: int, radiance: np.ndarray) -> dict:
