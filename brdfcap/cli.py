@@ -169,6 +169,8 @@ def demo_cmd(obj: _Ctx, out: Path, lmax: int) -> None:
 from brdfcap.cmd_diligent import import_diligent_cmd  # noqa: E402  (DiLiGenT import, issue 8)
 
 main.add_command(import_diligent_cmd)
+from brdfcap.cmd_bench import bench_cmd  # noqa: E402  (accuracy vs time, issue 7)
+main.add_command(bench_cmd)
 
 def entry() -> None:
     """Console-script entry point: run :func:`main`, then exit without interpreter teardown.
