@@ -130,7 +130,7 @@ def load_capture(capture_dir: str | Path) -> Capture:
         raise CaptureError("mask not found; check geometry.mask in capture.toml",
                            config.geometry_mask)
     views = [linearise_view(i, spec, config) for i, spec in enumerate(config.images)]
-    from .raw_load import check_any_decoded
+    from .raw_load import finish_views
 
-    check_any_decoded(views, config)  # undecodable raw files are skipped unless all are
+    finish_views(views, config)  # raw files: fail if none decoded; [colour] checker correction
     return Capture(config=config, views=views)

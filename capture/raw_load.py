@@ -24,7 +24,8 @@ from .hdr import Exposure, merge_brackets
 from .raw import RawOptions, decode_raw
 from .types import CaptureConfig, ImageSpec, View
 
-__all__ = ["raw_options_for", "linearise_raw_view", "REPORT_KEYS"]
+__all__ = ["raw_options_for", "linearise_raw_view", "apply_colour_checker", "finish_views",
+           "REPORT_KEYS", "COLOUR_KEYS"]
 
 #: Chain entries copied into ``View.info`` (the report's "Linearisation per image" table).
 REPORT_KEYS = ("demosaic", "demosaic_edge_fraction", "black_level", "white_level", "saturated_fraction", "masked_fraction",
@@ -107,3 +108,70 @@ def check_any_decoded(views: list[View], config: CaptureConfig) -> None:
     if raw_views and all("error" in v.info for v in raw_views) and len(raw_views) == len(views):
         raise CaptureError("no image of the capture could be decoded; first error: "
                            f"{raw_views[0].info['error']}", config.toml_path)
+
+
+#: Keys of the ``[colour]`` table of ``capture.toml`` (ColorChecker correction).
+COLOUR_KEYS = frozenset({"checker_image", "checker_boxes", "checker_method", "checker_chart"})
+
+
+def apply_colour_checker(views: list[View], config: CaptureConfig) -> dict | None:
+    """Correct every view with a ColorChecker photographed under the capture's conditions.
+
+    Reads ``[colour]`` (``checker_image``: raw or linear image of the chart, decoded like the
+    views; ``checker_boxes``: 24 ``[x0, y0, x1, y1]`` pixel boxes in chart order;
+    ``checker_method``: a colour-science colour-correction method, default ``"Cheung 2004"``;
+    ``checker_chart``). Each view's radiance is corrected (its variance too, through the 3x3
+    matrix, when the method is linear); the method and mean ΔE2000 before/after go into every
+    view's info, the per-patch ΔE2000 into the first view's. Returns the result dict, or None
+    without a ``[colour]`` table.
+    """
+    from .colour import DEFAULT_COLOUR_CHECKER, colour_checker_correction, propagate_variance
+    from .images import read_image
+    from .raw import is_raw_file
+
+    doc = config.raw or {}
+    tab = doc.get("colour", doc.get("color"))
+    if not tab:
+        return None
+    bad = sorted(set(tab) - COLOUR_KEYS)
+    if bad:
+        raise CaptureError(f"unknown key(s) in [colour]: {', '.join(bad)}; valid: "
+                           f"{', '.join(sorted(COLOUR_KEYS))}", config.toml_path)
+    if "checker_image" not in tab or "checker_boxes" not in tab:
+        raise CaptureError("[colour] needs checker_image and checker_boxes (24 boxes "
+                           "[x0, y0, x1, y1] in pixels, chart order)", config.toml_path)
+    path = config.root / tab["checker_image"]
+    opts = RawOptions.from_tables(doc.get("raw"), root=config.root, path=config.toml_path)
+    if is_raw_file(path):
+        li = decode_raw(path, opts)
+        image, mask = li.radiance, li.mask
+    else:
+        image = read_image(path)
+        mask = np.all(np.isfinite(image), axis=2)
+    res = colour_checker_correction(
+        image, tab["checker_boxes"], method=tab.get("checker_method", "Cheung 2004"),
+        chart=tab.get("checker_chart", DEFAULT_COLOUR_CHECKER), space=opts.working_space,
+        mask=mask)
+    d = res.to_dict()
+    linear = np.shape(res.matrix) == (3, 3)
+    for v in views:
+        if "error" in v.info:
+            continue
+        v.radiance = res.apply(v.radiance)
+        if v.variance is not None:
+            v.variance = propagate_variance(res.matrix, v.variance).astype(np.float32) \
+                if linear else v.variance
+        v.info["checker_method"] = d["method"]
+        v.info["checker_dE2000_before"] = d["mean_delta_E_2000_before"]
+        v.info["checker_dE2000_after"] = d["mean_delta_E_2000_after"]
+    if views:
+        views[0].info["checker_patches_dE2000"] = "; ".join(
+            f"{p['name']} {p['delta_E_2000_before']:.2f}->{p['delta_E_2000_after']:.2f}"
+            for p in d["patches"])
+    return d
+
+
+def finish_views(views: list[View], config: CaptureConfig) -> None:
+    """After all views are linearised: fail if no raw image decoded; apply a ColorChecker."""
+    check_any_decoded(views, config)
+    apply_colour_checker(views, config)

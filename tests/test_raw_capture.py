@@ -102,3 +102,39 @@ def test_raw_keys_in_capture_toml(raw_capture, tmp_path):
     with pytest.raises(CaptureError, match="demosiac"):
         load_capture(cap)
     assert np.all(np.isfinite(c.views[0].radiance))
+
+
+def test_colour_checker_in_capture_toml_corrects_every_view(raw_capture, tmp_path):
+    """A chart photographed through a camera colour error (a mixing matrix the DNG does not
+    declare) is fitted from patch boxes in [colour]; ΔE2000 drops and the views are corrected."""
+    from brdfcap.capture.colour import colour_checker_reference
+    from brdfcap.capture.raw_synth import write_raw_view
+
+    cap = tmp_path / "cap"
+    shutil.copytree(raw_capture, cap)
+    _, ref = colour_checker_reference()
+    mix = np.array([[1.1, 0.08, -0.02], [0.03, 0.92, 0.05], [0.0, -0.04, 1.15]])
+    chart = np.full((60, 84, 3), 0.05)
+    boxes = []
+    for i in range(24):
+        r, c = divmod(i, 6)
+        box = [c * 14 + 2, r * 14 + 2, c * 14 + 12, r * 14 + 12]
+        chart[box[1]:box[3], box[0]:box[2]] = ref[i] @ mix.T
+        boxes.append([box[0] + 2, box[1] + 2, box[2] - 2, box[3] - 2])  # inside the patch
+    write_raw_view(cap / "chart", chart, ["cfa", "black_white_level"])
+    with open(cap / "capture.toml", "a") as f:
+        f.write(f'\n[colour]\nchecker_image = "chart.dng"\nchecker_boxes = {boxes}\n')
+    plain = load_capture(raw_capture)
+    c = load_capture(cap)
+    info = c.views[0].info
+    assert info["checker_method"] == "Cheung 2004"
+    assert info["checker_dE2000_before"] > 2.0
+    assert info["checker_dE2000_after"] < 0.5
+    assert "dark skin" in info["checker_patches_dE2000"]
+    m = c.views[1].mask
+    # the correction undoes the mixing, up to one overall factor: the neutral patches keep their
+    # measured level (exposure is not changed by a colour correction)
+    expect = np.einsum("ij,...j->...i", np.linalg.inv(mix), plain.views[1].radiance[m])
+    ratio = c.views[1].radiance[m].mean(0) / expect.mean(0)
+    assert ratio.max() / ratio.min() < 1.01
+    assert 0.9 < ratio.mean() < 1.1
