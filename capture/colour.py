@@ -68,12 +68,14 @@ WORKING_SPACES: dict[str, str] = {
 #: Default working space: linear sRGB / Rec.709 primaries, D65 white.
 DEFAULT_WORKING_SPACE = "srgb-linear"
 
-#: Names written to OpenImageIO's ``oiio:ColorSpace`` attribute for each working space.
+#: Names written to OpenImageIO's ``oiio:ColorSpace`` attribute for each working space: the
+#: colour-interop IDs OpenImageIO 3 itself normalises to (``lin_rec709`` -> ``lin_rec709_scene``,
+#: ``ACEScg`` -> ``lin_ap1_scene``).
 OIIO_COLOUR_SPACE_NAMES: dict[str, str] = {
-    "srgb-linear": "lin_rec709",
-    "rec709-linear": "lin_rec709",
-    "acescg": "ACEScg",
-    "rec2020-linear": "lin_rec2020",
+    "srgb-linear": "lin_rec709_scene",
+    "rec709-linear": "lin_rec709_scene",
+    "acescg": "lin_ap1_scene",
+    "rec2020-linear": "lin_rec2020_scene",
 }
 
 #: Chromatic adaptation transforms allowed for the XYZ(D65) -> working space step.

@@ -65,6 +65,7 @@ __all__ = [
     "LinearImage",
     "decode_raw",
     "exposure_factor",
+    "write_linear_image",
 ]
 
 #: File extensions dispatched to :func:`decode_raw` (lower case).
@@ -845,3 +846,22 @@ def _cfa_string(chan: np.ndarray) -> str:
     if chan.shape[0] >= 6 and not np.array_equal(chan[:2, :2], chan[2:4, 2:4]):
         rows, cols = 6, 6
     return "/".join("".join("RGB"[c] for c in chan[r, :cols]) for r in range(rows))
+
+
+def write_linear_image(path: str | Path, image: LinearImage) -> Path:
+    """Write a decoded raw image as a linear float image (EXR/TIFF) with OpenImageIO.
+
+    The working space goes into ``oiio:ColorSpace`` (:data:`OIIO_COLOUR_SPACE_NAMES`, e.g.
+    ``lin_rec709``, ``ACEScg``) and ``brdfcap:working_space``; the whole chain, as JSON, into
+    ``brdfcap:linearisation``; masked pixels are written as NaN so that a later read masks them.
+    """
+    import json
+
+    from .colour import OIIO_COLOUR_SPACE_NAMES
+    from .images import write_image
+
+    space = image.chain.get("working_space", DEFAULT_WORKING_SPACE)
+    data = np.where(image.mask[..., None], image.radiance, np.nan).astype(np.float32)
+    return write_image(path, data, colorspace=OIIO_COLOUR_SPACE_NAMES[space],
+                       attributes={"brdfcap:working_space": space,
+                                   "brdfcap:linearisation": json.dumps(image.chain)})

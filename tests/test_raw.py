@@ -319,3 +319,24 @@ def test_options_from_tables_merge_and_resolve_paths(tmp_path):
 def test_is_raw_file():
     assert is_raw_file("a.DNG") and is_raw_file("x/y.cr3") and is_raw_file("b.nef")
     assert not is_raw_file("a.exr") and not is_raw_file("a.tif")
+
+
+@pytest.mark.parametrize("space,oiio_name", [("srgb-linear", "lin_rec709_scene"),
+                                             ("acescg", "lin_ap1_scene")])
+def test_linear_image_written_with_its_colour_space(tmp_path, space, oiio_name):
+    import OpenImageIO as oiio
+
+    from brdfcap.capture.images import read_image
+    from brdfcap.capture.raw import write_linear_image
+
+    rec = write_raw_view(tmp_path / "x", smooth_image(), ["cfa"])
+    li = decode_raw(tmp_path / rec["files"][0], RawOptions(working_space=space))
+    out = write_linear_image(tmp_path / "x.exr", li)
+    inp = oiio.ImageInput.open(str(out))
+    spec = inp.spec()
+    inp.close()
+    assert spec.getattribute("oiio:ColorSpace") == oiio_name
+    assert spec.getattribute("brdfcap:working_space") == space
+    assert json.loads(spec.getattribute("brdfcap:linearisation"))["demosaic"] == li.chain["demosaic"]
+    back = read_image(out)
+    np.testing.assert_array_equal(back[li.mask], li.radiance[li.mask])
