@@ -66,6 +66,7 @@ __all__ = [
     "decode_raw",
     "exposure_factor",
     "write_linear_image",
+    "estimate_noise_profile",
 ]
 
 #: File extensions dispatched to :func:`decode_raw` (lower case).
@@ -97,6 +98,7 @@ RAW_OPTION_KEYS = frozenset({
     "demosaic", "black_level", "white_level", "saturation_fraction", "white_balance",
     "colour_matrix", "color_matrix", "working_space", "chromatic_adaptation", "shutter",
     "aperture", "iso", "dark_frame", "flat_field", "noise_profile", "demosaic_edge_threshold",
+    "noise_darks", "noise_flats",
 })
 
 _DNG_ILLUMINANT_D65 = 21
@@ -148,6 +150,10 @@ class RawOptions:
         Interpolated channels whose demosaic footprint spans a relative contrast above this
         (``(hi - lo) / hi``, default 0.5) are invalid (:func:`_demosaic_edges`); 0 or None
         turns the check off.
+    noise_darks, noise_flats : sequences of paths, optional
+        Raw dark frames and pairs of raw flat frames (``[[a, b], ...]``, each pair at one
+        exposure) from which the noise profile is estimated (:func:`estimate_noise_profile`)
+        when ``noise_profile`` is not given.
     """
 
     demosaic: str = "linear"
@@ -167,6 +173,8 @@ class RawOptions:
     noise_profile: Sequence | None = None
     noise: NoiseModel | None = None
     demosaic_edge_threshold: float | None = 0.5
+    noise_darks: Sequence | None = None
+    noise_flats: Sequence | None = None
 
     def validate(self, path: str | Path | None = None) -> RawOptions:
         """Check names and ranges; raise :class:`CaptureError` naming ``path`` on a bad value."""
@@ -215,6 +223,11 @@ class RawOptions:
         for k in ("dark_frame", "flat_field"):
             if merged.get(k) is not None:
                 merged[k] = Path(root) / merged[k]
+        if merged.get("noise_darks") is not None:
+            merged["noise_darks"] = [Path(root) / f for f in merged["noise_darks"]]
+        if merged.get("noise_flats") is not None:
+            merged["noise_flats"] = [[Path(root) / f for f in pair]
+                                     for pair in merged["noise_flats"]]
         merged.update({k: v for k, v in extra.items() if v is not None})
         return cls(**merged).validate(path)
 
@@ -485,6 +498,10 @@ def _noise_profile(tags: dict, opts: RawOptions, path: Path):
     prof, src = None, None
     if opts.noise_profile is not None:
         prof, src = np.asarray(opts.noise_profile, dtype=np.float64), "capture.toml noise_profile"
+    elif opts.noise_darks:
+        prof = estimate_noise_profile(opts.noise_darks, opts.noise_flats or [], opts)
+        src = (f"estimated from {len(opts.noise_darks)} dark frame(s) and "
+               f"{len(opts.noise_flats or [])} flat pair(s) (photon transfer)")
     elif tags.get("NoiseProfile") is not None:
         prof, src = np.asarray(tags["NoiseProfile"], dtype=np.float64), "DNG NoiseProfile"
     if prof is None:
@@ -865,3 +882,40 @@ def write_linear_image(path: str | Path, image: LinearImage) -> Path:
     return write_image(path, data, colorspace=OIIO_COLOUR_SPACE_NAMES[space],
                        attributes={"brdfcap:working_space": space,
                                    "brdfcap:linearisation": json.dumps(image.chain)})
+
+
+def _samples_per_channel(path: Path, opts: RawOptions, what: str) -> list[np.ndarray]:
+    """Normalised, black-subtracted samples of a raw frame, one flat array per R, G, B."""
+    raw, _, _, data, chan, _, b_site, _, white, _ = _normalised_samples(Path(path), opts, what)
+    raw.close()
+    x = (data - b_site) / (white - b_site)
+    if chan is None:
+        return [x[..., c].ravel() for c in range(3)]
+    return [x[chan == c] for c in range(3)]
+
+
+def estimate_noise_profile(darks: Sequence, flats: Sequence = (),
+                           options: RawOptions | None = None) -> np.ndarray:
+    """Noise profile ``[[S, O]] * 3`` (normalised units) from raw dark and flat frames.
+
+    Per colour channel, :func:`brdfcap.capture.hdr.estimate_noise` gives the read noise
+    ``sigma_r`` from the darks and the shot-noise slope from the flat pairs (photon transfer,
+    Janesick 2007); ``O = sigma_r^2`` and ``S`` = the slope, both in units of the normalised
+    signal ``x = (raw - black) / (white - black)`` (the DNG ``NoiseProfile`` convention).
+    Levels follow ``options`` (black/white overrides), so frames and images must share them.
+    """
+    from .hdr import estimate_noise
+
+    opts = RawOptions(black_level=options.black_level, white_level=options.white_level) \
+        if options is not None else RawOptions()
+    d = [_samples_per_channel(p, opts, "noise dark frame") for p in darks]
+    f = [[_samples_per_channel(p, opts, "noise flat frame") for p in pair] for pair in flats]
+    for pair in flats:
+        if len(pair) != 2:
+            raise CaptureError("[raw] noise_flats must be pairs [a, b] taken at one exposure",
+                               Path(pair[0]) if pair else None)
+    prof = np.zeros((3, 2))
+    for c in range(3):
+        model = estimate_noise([di[c] for di in d], [(a[c], b[c]) for a, b in f])
+        prof[c] = (model.gain, model.read**2)
+    return prof

@@ -340,3 +340,38 @@ def test_linear_image_written_with_its_colour_space(tmp_path, space, oiio_name):
     assert json.loads(spec.getattribute("brdfcap:linearisation"))["demosaic"] == li.chain["demosaic"]
     back = read_image(out)
     np.testing.assert_array_equal(back[li.mask], li.radiance[li.mask])
+
+
+def test_noise_profile_estimated_from_dark_and_flat_frames(tmp_path):
+    """Photon transfer on synthetic raw darks/flats recovers S = gain / span and
+    O = (read^2 + 1/12) / span^2 (quantisation included), and the decode reports its source."""
+    rng = np.random.default_rng(5)
+    black, white, read, gain = 512, 16383, 3.0, 0.5
+    span = white - black
+    shape = (120, 160)
+
+    def frame(level):
+        dn = rng.poisson(level / gain, shape) * gain + rng.normal(0, read, shape)
+        return np.clip(np.round(dn + black), 0, white).astype(np.uint16)
+
+    kw = dict(black_level=black, white_level=white, shutter=0.01, aperture=4.0, iso=100)
+    darks = []
+    for i in range(2):
+        dark = np.clip(np.round(black + rng.normal(0, read, shape)), 0, white)
+        write_dng(tmp_path / f"d{i}.dng", dark.astype(np.uint16), **kw)
+        darks.append(tmp_path / f"d{i}.dng")
+    flats = []
+    for j, level in enumerate((1000.0, 6000.0)):
+        pair = []
+        for i in range(2):
+            write_dng(tmp_path / f"f{j}{i}.dng", frame(level), **kw)
+            pair.append(tmp_path / f"f{j}{i}.dng")
+        flats.append(pair)
+    from brdfcap.capture.raw import estimate_noise_profile
+
+    prof = estimate_noise_profile(darks, flats)
+    np.testing.assert_allclose(prof[:, 0], gain / span, rtol=0.1)
+    np.testing.assert_allclose(prof[:, 1], (read**2 + 1 / 12) / span**2, rtol=0.1)
+    li = decode_raw(tmp_path / "f00.dng", RawOptions(noise_darks=darks, noise_flats=flats))
+    assert li.chain["noise_source"].startswith("estimated from 2 dark")
+    assert li.variance is not None
