@@ -1,0 +1,59 @@
+"""``brdfcap envmap-sh``: SH coefficients of a lat-long light probe (issue 3).
+
+Frame and convention: see :mod:`brdfcap.fit.envmap` and ``docs/sh.md`` — world +z up, image row
+0 at the +z pole, column ``u`` at ``φ = 2π(u+½)/W`` from +x toward +y; real SH in the R&H 2001
+signs, index ``l(l+1)+m``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+
+@click.command("envmap-sh")
+@click.argument("probe", type=click.Path(path_type=Path))
+@click.option("--lmax", type=click.IntRange(0, 1000), default=2, show_default=True,
+              help="Highest SH band.")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON (coefficients + metadata).")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None,
+              help="Also write the JSON to this file.")
+@click.option("--window", type=click.Choice(["none", "hann", "lanczos"]), default="none",
+              show_default=True, help="Per-band window against ringing (recorded).")
+@click.option("--quadrature", type=click.Choice(["fejer", "pixel"]), default="fejer",
+              show_default=True, help="Solid-angle quadrature (fejer: exact for band-limited "
+                                      "maps; pixel: exact pixel solid angles).")
+def envmap_sh_cmd(probe: Path, lmax: int, as_json: bool, out: Path | None, window: str,
+                  quadrature: str) -> None:
+    """Project the lat-long environment map PROBE (.hdr / .exr) onto real SH up to --lmax."""
+    from brdfcap.errors import BrdfcapError
+    from brdfcap.fit.envmap import envmap_sh_from_file
+
+    if not probe.is_file():
+        raise click.ClickException(str(BrdfcapError("no such file (give a lat-long .hdr or "
+                                                    ".exr light probe)", probe)))
+    try:
+        res = envmap_sh_from_file(probe, lmax, quadrature=quadrature, window=window)
+    except BrdfcapError as exc:
+        raise click.ClickException(str(exc)) from exc
+    doc = res.to_json_dict()
+    text = json.dumps(doc, indent=1)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+    if as_json:
+        click.echo(text)
+        return
+    chans = "RGB"[: res.coeffs.shape[1]] if res.coeffs.shape[1] <= 3 else \
+        [f"c{i}" for i in range(res.coeffs.shape[1])]
+    click.echo(f"# {probe}  ({res.shape[0]}x{res.shape[1]}), lmax={lmax}, "
+               f"quadrature={res.quadrature}, window={res.window}")
+    click.echo(f"# frame: {res.frame}")
+    click.echo("# real SH, R&H 2001 signs, index l(l+1)+m")
+    for n in res.notes:
+        click.echo(f"# note: {n}")
+    click.echo("  l    m " + "".join(f"{c:>12}" for c in chans))
+    for row in doc["coefficients"]:
+        click.echo(f"{row['l']:>3} {row['m']:>4} " + "".join(f"{v:12.6f}" for v in row["value"]))
