@@ -171,6 +171,8 @@ from brdfcap.cmd_diligent import import_diligent_cmd  # noqa: E402  (DiLiGenT im
 main.add_command(import_diligent_cmd)
 from brdfcap.cmd_bench import bench_cmd  # noqa: E402  (accuracy vs time, issue 7)
 main.add_command(bench_cmd)
+from brdfcap.cmd_envmap import envmap_sh_cmd  # noqa: E402  (SH of a light probe, issue 3)
+main.add_command(envmap_sh_cmd)
 
 def entry() -> None:
     """Console-script entry point: run :func:`main`, then exit without interpreter teardown.
