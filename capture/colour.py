@@ -189,7 +189,7 @@ def matrix_camera_to_working(xyz_to_camera: np.ndarray, space: str = DEFAULT_WOR
 
 
 def apply_matrix(M: np.ndarray, image: np.ndarray) -> np.ndarray:
-    """Apply a 3x3 matrix to a channels-last image ``(..., 3)``: ``out[..., i] = M[i, j] x[..., j]``."""
+    """Apply a 3x3 matrix to a channels-last image ``(..., 3)``: ``out_i = M_ij x_j``."""
     image = np.asarray(image)
     if image.shape[-1] != 3:
         raise ValueError(f"image: expected shape (..., 3), got {image.shape}")
@@ -215,7 +215,7 @@ DEFAULT_COLOUR_CHECKER = "ColorChecker24 - After November 2014"
 
 def colour_checker_reference(name: str = DEFAULT_COLOUR_CHECKER,
                              space: str = DEFAULT_WORKING_SPACE) -> tuple[list[str], np.ndarray]:
-    """Reference linear RGB of a ColorChecker's patches in a working space.
+    """Return the reference linear RGB of a ColorChecker's patches in a working space.
 
     colour-science's ``CCS_COLOURCHECKERS`` give CIE xyY under the chart's illuminant (D50 for
     the ColorChecker24 data); they are converted to XYZ, adapted to D65 with Bradford and then to

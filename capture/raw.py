@@ -106,7 +106,7 @@ _DAYLIGHT_ILLUMINANTS = (21, 20, 22, 23, 1, 4, 9, 10, 11)  # D65, D55, D75, D50,
 
 
 def is_raw_file(path: str | Path) -> bool:
-    """True when ``path`` has a camera-raw extension (:data:`RAW_EXTENSIONS`)."""
+    """Return True when ``path`` has a camera-raw extension (:data:`RAW_EXTENSIONS`)."""
     return Path(path).suffix.lower() in RAW_EXTENSIONS
 
 
@@ -260,7 +260,7 @@ class LinearImage:
     chain: dict = field(default_factory=dict)
 
     def info(self) -> dict:
-        """The chain as a flat ``{str: str | number}`` dict for the report (lists formatted)."""
+        """Return the chain as a flat ``{str: str | number}`` dict (lists formatted)."""
         out = {}
         for k, v in self.chain.items():
             if isinstance(v, (list, tuple, np.ndarray)):
@@ -459,8 +459,9 @@ def _white_balance(raw, tags: dict, path: Path, opts: RawOptions, lut: list[int]
         return np.asarray(wb, dtype=np.float64), "capture.toml multipliers"
     if wb == "none":
         return np.ones(3), "none (camera neutral = D65)"
-    if wb == "as-shot" and tags.get("AsShotNeutral") is not None and len(tags["AsShotNeutral"]) == 3:
-        n = np.asarray(tags["AsShotNeutral"], dtype=np.float64)
+    asn = tags.get("AsShotNeutral")
+    if wb == "as-shot" and asn is not None and len(asn) == 3:
+        n = np.asarray(asn, dtype=np.float64)
         if np.all(n > 0):
             m = 1.0 / n
             return m / m[1], "as-shot (DNG AsShotNeutral)"
@@ -470,7 +471,8 @@ def _white_balance(raw, tags: dict, path: Path, opts: RawOptions, lut: list[int]
         if i < len(src) and src[i] > 0 and mult[c] == 0:
             mult[c] = src[i]
     if np.all(mult > 0):
-        return mult / mult[1], f"{wb} (LibRaw {'camera' if wb == 'as-shot' else 'daylight'}_whitebalance)"
+        which = "camera" if wb == "as-shot" else "daylight"
+        return mult / mult[1], f"{wb} (LibRaw {which}_whitebalance)"
     raise CaptureError(f"no {wb} white balance in the metadata; set [raw] white_balance = "
                        "'daylight', 'none' or [r, g, b] in capture.toml", path)
 
@@ -580,8 +582,8 @@ def _demosaic_half(x, var, chan, site_ok, path):
     """2x2 superpixels: per channel the mean of the block's samples of that colour."""
     H, W = (x.shape[0] // 2) * 2, (x.shape[1] // 2) * 2
     pat = chan[:2, :2]
-    if x.ndim == 2 and not (np.array_equal(chan[:H:2, :W:2], np.broadcast_to(pat[0, 0], (H // 2, W // 2)))
-                            and set(np.unique(pat)) == {0, 1, 2}):
+    periodic = np.array_equal(chan[:H, :W], np.tile(pat, (H // 2, W // 2)))
+    if x.ndim == 2 and not (periodic and set(np.unique(pat)) == {0, 1, 2}):
         raise CaptureError("demosaic 'half' needs a 2x2 CFA with R, G and B (e.g. Bayer); "
                            "use 'linear' for this sensor", path)
 
@@ -801,7 +803,8 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
         sizes = raw.sizes
         chain = {
             "file": path.name,
-            "decoder": f"rawpy {rawpy.__version__} / LibRaw {'.'.join(map(str, rawpy.libraw_version))}",
+            "decoder": (f"rawpy {rawpy.__version__} / LibRaw "
+                        f"{'.'.join(map(str, rawpy.libraw_version))}"),
             "raw_type": "cfa" if chan is not None else "linear (no CFA)",
             "cfa_pattern": cfa,
             "colour_filter": desc,
@@ -839,7 +842,8 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
             "noise_profile": None if prof is None else prof.tolist(),
         }
         if "BaselineExposure" in tags:
-            chain["dng_baseline_exposure_ev_not_applied"] = float(np.ravel(tags["BaselineExposure"])[0])
+            chain["dng_baseline_exposure_ev_not_applied"] = float(
+                np.ravel(tags["BaselineExposure"])[0])
         return LinearImage(
             radiance=rgb.astype(np.float32), valid=ok3, mask=mask,
             variance=None if variance is None else variance.astype(np.float32), chain=chain)

@@ -28,7 +28,8 @@ __all__ = ["raw_options_for", "linearise_raw_view", "apply_colour_checker", "fin
            "REPORT_KEYS", "COLOUR_KEYS"]
 
 #: Chain entries copied into ``View.info`` (the report's "Linearisation per image" table).
-REPORT_KEYS = ("demosaic", "demosaic_edge_fraction", "black_level", "white_level", "saturated_fraction", "masked_fraction",
+REPORT_KEYS = ("demosaic", "demosaic_edge_fraction", "black_level", "white_level",
+               "saturated_fraction", "masked_fraction",
                "white_balance", "white_balance_source", "colour_matrix_source",
                "camera_to_working", "working_space", "exposure", "exposure_source",
                "dark_frame", "flat_field", "noise_source")

@@ -26,7 +26,8 @@ applies, in order, only the effects listed (:data:`RAW_EFFECTS`), recording whic
     one file per EV offset in ``brackets`` (exposure ``k 2^ev``), to be merged to HDR.
 
 Exposure metadata (shutter, f-number, ISO) goes into a real EXIF IFD so that LibRaw reads it
-back; the decoder divides by ``k = t (ISO / 100) / N^2`` (:func:`brdfcap.capture.raw.exposure_factor`).
+back; the decoder divides by ``k = t (ISO / 100) / N^2``
+(:func:`brdfcap.capture.raw.exposure_factor`).
 The DNG is written with tifffile (baseline TIFF + DNG 1.4 tags), no extra dependency.
 
 References
@@ -427,7 +428,7 @@ class RawCaptureWriter:
         return {"raw": {"flat_field": self.flat}} if self.flat else {}
 
     def record(self) -> dict:
-        """What was simulated, for ``ground_truth.json``."""
+        """Return what was simulated, for ``ground_truth.json``."""
         p = self.params
         return {"effects": self.effects, "cfa": p.cfa if "cfa" in self.effects else None,
                 "black_level": _levels(self.effects, p)[0],

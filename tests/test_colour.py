@@ -5,7 +5,6 @@ from __future__ import annotations
 import colour
 import numpy as np
 import pytest
-
 from brdfcap.capture.colour import (
     COLOUR_CORRECTION_METHODS,
     WORKING_SPACES,
@@ -20,6 +19,7 @@ from brdfcap.capture.colour import (
     validate_method,
 )
 from brdfcap.capture.raw_synth import CANON_EOS_6D_D65
+
 from brdfcap.errors import CaptureError
 
 TOL = {np.float32: 1e-5, np.float64: 1e-12}

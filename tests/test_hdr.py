@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from brdfcap.capture.hdr import Exposure, estimate_noise, merge_brackets
 from brdfcap.capture.raw import decode_raw
 from brdfcap.capture.raw_synth import RawSynthParams, write_raw_view
 from brdfcap.capture.types import NoiseModel
+
 from brdfcap.errors import CaptureError
 
 

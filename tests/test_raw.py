@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import rawpy
 import tifffile
-
 from brdfcap.capture.raw import (
     DEMOSAIC_METHODS,
     RawOptions,
@@ -18,9 +17,9 @@ from brdfcap.capture.raw import (
     is_raw_file,
 )
 from brdfcap.capture.raw_synth import write_dng, write_raw_view
-from brdfcap.errors import CaptureError
-
 from conftest import REFERENCE
+
+from brdfcap.errors import CaptureError
 
 REAL_DNG = REFERENCE / "raw" / "canon_eos_6d.dng"
 needs_real = pytest.mark.skipif(not REAL_DNG.is_file(), reason="shared reference DNG missing")
@@ -325,7 +324,6 @@ def test_is_raw_file():
                                              ("acescg", "lin_ap1_scene")])
 def test_linear_image_written_with_its_colour_space(tmp_path, space, oiio_name):
     import OpenImageIO as oiio
-
     from brdfcap.capture.images import read_image
     from brdfcap.capture.raw import write_linear_image
 
@@ -337,7 +335,8 @@ def test_linear_image_written_with_its_colour_space(tmp_path, space, oiio_name):
     inp.close()
     assert spec.getattribute("oiio:ColorSpace") == oiio_name
     assert spec.getattribute("brdfcap:working_space") == space
-    assert json.loads(spec.getattribute("brdfcap:linearisation"))["demosaic"] == li.chain["demosaic"]
+    chain = json.loads(spec.getattribute("brdfcap:linearisation"))
+    assert chain["demosaic"] == li.chain["demosaic"]
     back = read_image(out)
     np.testing.assert_array_equal(back[li.mask], li.radiance[li.mask])
 

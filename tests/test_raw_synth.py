@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rawpy
-
 from brdfcap.capture.raw import RawOptions, decode_raw
 from brdfcap.capture.raw_synth import (
     RAW_EFFECTS,
@@ -15,6 +14,7 @@ from brdfcap.capture.raw_synth import (
     write_flat_field,
     write_raw_view,
 )
+
 from brdfcap.errors import CaptureError
 
 ALL_NOISE_FREE = ["colour_matrix", "white_balance", "vignetting", "cfa", "black_white_level"]
