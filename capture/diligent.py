@@ -223,7 +223,8 @@ def import_diligent(src: str | Path, out: str | Path, *, copy_images: bool = Tru
     (out / "images").mkdir(parents=True, exist_ok=True)
     normals = np.where(data.mask[..., None], data.normals, 0.0).astype(np.float32)
     write_image(out / "normals.exr", normals, colorspace="data",
-                attributes={"brdfcap:frame": "world = DiLiGenT camera (x right, y up, z to viewer)"})
+                attributes={"brdfcap:frame": "world = DiLiGenT camera frame "
+                                             "(x right, y up, z toward the viewer)"})
     _write_mask(out / "mask.png", data.mask)
     images = []
     for k, f in enumerate(data.files):

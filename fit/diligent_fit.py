@@ -27,7 +27,9 @@ eliminated in closed form (block-diagonal normal equations, Schur complement for
 only nonlinear search is 1-D over ``log s`` (variable projection; Golub & Pereyra 1973, SIAM J.
 Numer. Anal. 10(2)). Standard errors of ``(k_s, s)`` come from the *projected* Jacobian (the
 per-pixel albedos marginalised out exactly, to first order); those of ``k_d`` are conditional on
-``(k_s, s)``.
+``(k_s, s)``. Without a noise model they are the heteroscedastic-consistent sandwich estimate
+(White 1980), since photographs' noise grows with the signal and the specular samples that fix
+``(k_s, s)`` are the brightest; with one, the inverse information scaled by ``max(χ²_ν, 1)``.
 
 SH-domain ρ̂ (lighting known)
 -----------------------------
@@ -179,7 +181,8 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
     used = (cos_i > 0) & np.isfinite(b).all(-1)
     if variance is None:
         w_all = np.ones_like(b)
-        src = "uniform weights, σ² from the fit residual (no noise model)"
+        src = ("uniform weights; standard errors from the residuals by the heteroscedastic-"
+               "consistent sandwich estimator (no noise model)")
     else:
         v = _np(variance)
         scale = np.median(np.abs(b), axis=0).clip(1e-300)
@@ -251,29 +254,47 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
     lobe = _spec_basis(np.ones((len(b), 1)), logx, s)  # (s+1)/(2π) x^s, (N, 1)
     logx0 = np.where(np.isfinite(logx), logx, 0.0)
     dgds = e * (lobe * (1.0 / (s + 1.0) + logx0[:, None]))  # d g / d s
+    pred_used = kd[pid_all] * f + ks * g
+    res = b - pred_used
     info = np.zeros((nch + 1, nch + 1))
+    meat = np.zeros((nch + 1, nch + 1))
     for c in range(nch):
         wc = w[:, c]
-        dp = np.bincount(pid_all, wc * f[:, c] ** 2, npix)
-        dps = np.where(dp > 0, dp, 1.0)
         cols = [g[:, c], ks[c] * dgds[:, c]]
         proj = []
         for col in cols:
-            coef = np.bincount(pid_all, wc * f[:, c] * col, npix) / dps
+            coef = np.bincount(pid_all, wc * f[:, c] * col, npix) / d_safe[:, c]
             proj.append(col - f[:, c] * coef[pid_all])
         jk, js = proj
-        info[c, c] += (wc * jk * jk).sum()
-        info[c, nch] += (wc * jk * js).sum()
-        info[nch, c] += (wc * jk * js).sum()
-        info[nch, nch] += (wc * js * js).sum()
+        wr2 = (wc * res[:, c]) ** 2
+        for (a_, b_), (ja, jb) in (((c, c), (jk, jk)), ((c, nch), (jk, js)),
+                                   ((nch, nch), (js, js))):
+            info[a_, b_] += (wc * ja * jb).sum()
+            meat[a_, b_] += (wr2 * ja * jb).sum()
+            if a_ != b_:
+                info[b_, a_], meat[b_, a_] = info[a_, b_], meat[a_, b_]
+    dof_corr = nu * nch / dof  # HC1 small-sample correction (MacKinnon & White 1985)
     try:
-        cov = np.linalg.inv(info) * sigma2
+        inv = np.linalg.inv(info)
+        if variance is None:
+            # heteroscedastic-consistent "sandwich" covariance (White 1980, Econometrica 48(4),
+            # eq. 5): without a noise model the residual scatter differs between the dim diffuse
+            # and the bright specular samples, and one pooled σ² underestimates the error of the
+            # lobe parameters several-fold
+            cov = inv @ meat @ inv * dof_corr
+        else:
+            cov = inv * sigma2
         se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
         se = np.full(nch + 1, math.inf)
-    dall = np.stack([np.bincount(pid_all, w[:, c] * f[:, c] ** 2, npix) for c in range(nch)], -1)
-    kd_se = np.sqrt(sigma2 / np.where(dall > 0, dall, np.inf))
-    pred_used = kd[pid_all] * f + ks * g
+    if variance is None:  # per-pixel sandwich for kd (conditional on ks, s)
+        num = np.stack([np.bincount(pid_all, (w[:, c] * f[:, c] * res[:, c]) ** 2, npix)
+                        for c in range(nch)], -1)
+        nper = np.bincount(pid_all, minlength=npix)[:, None].astype(np.float64)
+        kd_se = np.sqrt(num / d_safe**2 * nper / np.clip(nper - 1, 1, None))
+        kd_se = np.where(d_pc > 0, kd_se, np.inf)
+    else:
+        kd_se = np.sqrt(sigma2 / np.where(d_pc > 0, d_pc, np.inf))
     pred = np.zeros_like(_np(radiance))
     pred[used] = pred_used
     rel = math.sqrt(float(((b - pred_used) ** 2).mean())) / max(float(np.abs(b).mean()), 1e-300)
@@ -341,9 +362,9 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
 
     Band ``l`` is *ill-conditioned* when its coefficient is not resolved by the sampled range
     of ``x`` (model-resolution diagonal < 0.5, eigenvalues below 1e-12 of the largest of the
-    column-equilibrated normal matrix dropped) or when its standard error exceeds the larger of
-    ``|ρ̂_l|`` and 1e-3 ``|ρ̂_0|`` (SNR < 1: R&H's ``ρ̂_l`` below the noise). The same rule as
-    the lighting's conditioning (``brdfcap.fit.lighting``), applied to the BRDF.
+    column-equilibrated normal matrix dropped) or when its standard error exceeds ``|ρ̂_l|``
+    (SNR < 1: R&H's ``ρ̂_l`` below the noise), unless that error is below 1e-6 ``|ρ̂_0|`` (a
+    coefficient that is zero, measured exactly: float64 round-off of noise-free data).
 
     Parameters
     ----------
@@ -381,7 +402,7 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         rho[:, c] = xsol
         se[:, c] = np.where(res[:, c] > 0.5, np.sqrt(np.diag(inv) * dinv**2 * sigma2), math.inf)
     bands, first = [], None
-    floor = 1e-3 * np.abs(rho[0]).max(initial=0.0)
+    floor = 1e-6 * np.abs(rho[0]).max(initial=0.0)
     for l in range(lmax + 1):
         resolved = bool((res[l] > 0.5).all())
         snr = np.abs(rho[l]) / np.where(np.isfinite(se[l]) & (se[l] > 0), se[l], np.inf)
@@ -438,7 +459,7 @@ class BrdfMeasurement:
                    "x_range": list(self.sh.x_range),
                    "definition": "B_spec/E = Σ_l sqrt((2l+1)/4π) ρ̂_l P_l(r·ωi) (R&H 2001 eq. 12 "
                                  "with L_lm = E Y_lm(ωi)); band ill-conditioned when unresolved "
-                                 "(resolution < 0.5) or std. error > |ρ̂_l|"},
+                                 "(resolution < 0.5) or std. error > |ρ̂_l| (SNR < 1)"},
         }
 
 
