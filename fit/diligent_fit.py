@@ -395,12 +395,17 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         inv = (vk / ev[keep]) @ vk.T
         rhs = a.T @ (w[:, c] * y[:, c])
         xsol = dinv * (inv @ (dinv * rhs))
-        rss = float((w[:, c] * (y[:, c] - a @ xsol) ** 2).sum())
+        r = y[:, c] - a @ xsol
         dof = max(len(x) - int(keep.sum()), 1)
-        sigma2 = rss / dof
+        # sandwich covariance (White 1980) in the equilibrated basis: the specular residual's
+        # scatter grows with the signal, a pooled σ² would misstate the per-band errors
+        ae = a * dinv
+        meat = (ae * (w[:, c] * r)[:, None] ** 2).T @ ae
+        cov = inv @ meat @ inv * (len(x) / dof)
         res[:, c] = (vk * vk).sum(-1)
         rho[:, c] = xsol
-        se[:, c] = np.where(res[:, c] > 0.5, np.sqrt(np.diag(inv) * dinv**2 * sigma2), math.inf)
+        se[:, c] = np.where(res[:, c] > 0.5, np.sqrt(np.clip(np.diag(cov), 0, None)) * dinv,
+                            math.inf)
     bands, first = [], None
     floor = 1e-6 * np.abs(rho[0]).max(initial=0.0)
     for l in range(lmax + 1):
