@@ -311,7 +311,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     figs.update(F.brdf_figures(results["brdf"]))  # slices and polar lobes
     summary = _summary(results, lighting, albedo_fit)
     if brdf_meas is not None:
-        summary += brdf_summary_lines(brdf_meas, geom)
+        summary += brdf_summary_lines(brdf_meas, geom, results)
     results["summary"] = summary
     timings["report"] = time.perf_counter() - t0
     results["timings_s"] = timings

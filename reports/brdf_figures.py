@@ -130,8 +130,8 @@ def brdf_sh_figure(sh):
     return fig
 
 
-def brdf_summary_lines(meas, geometry=None) -> list[str]:
-    """Summary bullet points for the report."""
+def brdf_summary_lines(meas, geometry=None, results: dict | None = None) -> list[str]:
+    """Summary bullet points for the report (masking counts from ``results["masking"]``)."""
     p = meas.phong
     s = ["Lambertian + Phong BRDF (lighting known): median k_d (RGB) = "
          + ", ".join(f"{a:.4g}" for a in p.kd_median) + f" over {len(p.kd_pixel)} pixels; "
@@ -146,6 +146,11 @@ def brdf_summary_lines(meas, geometry=None) -> list[str]:
     fc = getattr(geometry, "frame_check", None)
     if fc is not None:
         s.append(f"Normal-map frame check: {fc.verdict} — {fc.message}.")
+    m = (results or {}).get("masking")
+    if m:
+        s.append(f"Masked object-pixel observations: {m['saturated_in_object']} saturated, "
+                 f"{m['dark_in_object']} dark (noise floor), of "
+                 f"{m['object_pixel_observations']}.")
     return s
 
 
