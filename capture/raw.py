@@ -524,6 +524,21 @@ def _noise_profile(tags: dict, opts: RawOptions, path: Path):
 _K_BILINEAR = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]])
 
 
+def _local_mean(x: np.ndarray, chan: np.ndarray | None, size: int = 5) -> np.ndarray:
+    """Mean of the same-colour samples in a ``size`` x ``size`` window, at every sample."""
+    if chan is None:
+        return ndimage.uniform_filter(x, size=(size, size, 1), mode="mirror")
+    out = np.empty_like(x)
+    for c in range(3):
+        m = chan == c
+        if not m.any():
+            continue
+        num = ndimage.uniform_filter(np.where(m, x, 0.0), size=size, mode="mirror")
+        den = ndimage.uniform_filter(m.astype(np.float64), size=size, mode="mirror")
+        out[m] = num[m] / den[m]
+    return out
+
+
 def _grow(bad: np.ndarray, radius: int) -> np.ndarray:
     if radius <= 0 or not bad.any():
         return bad
@@ -531,7 +546,17 @@ def _grow(bad: np.ndarray, radius: int) -> np.ndarray:
 
 
 def _demosaic_linear(x, var, chan, site_ok):
-    """Bilinear demosaic by normalised convolution (measured samples kept)."""
+    """Bilinear demosaic by normalised convolution (measured samples kept).
+
+    The variance returned for colour ``c`` is the local sample variance divided by ``d_c``, the
+    fraction of pixels that sample ``c`` (Bayer: 1/2 for G, 1/4 for R and B), at measured and
+    interpolated pixels alike. Interpolated values share samples with their neighbours, so
+    treating every pixel as independent with the interpolation's own variance (``sum w^2 var``)
+    would count each sample several times and shrink a fit's standard errors by ~2-3x;
+    with ``var / d_c`` the total weight of any smooth region equals the information actually
+    measured there (each sample's bilinear weights sum to ``1 / d_c``), so fitted standard
+    errors are right, at the cost of overstating a single measured pixel's noise by ``1/d_c``.
+    """
     H, W = x.shape
     out = np.empty((H, W, 3))
     vout = None if var is None else np.empty((H, W, 3))
@@ -543,8 +568,8 @@ def _demosaic_linear(x, var, chan, site_ok):
         with np.errstate(invalid="ignore", divide="ignore"):
             out[..., c] = np.where(m > 0, x, num / den)
             if var is not None:
-                vnum = ndimage.convolve(var * m, _K_BILINEAR**2, mode="mirror")
-                vout[..., c] = np.where(m > 0, var, vnum / den**2)
+                vnum = ndimage.convolve(var * m, _K_BILINEAR, mode="mirror")
+                vout[..., c] = np.where(m > 0, var, vnum / den) / max(m.mean(), 1e-12)
         ok[..., c] = ~_grow((~site_ok) & (m > 0), 1) & (den > 0)
     return out, vout, ok
 
@@ -731,7 +756,11 @@ def decode_raw(path: str | Path, options: RawOptions | None = None) -> LinearIma
         var = None
         if prof is not None:
             S, O = _per_site(prof[:, 0], data, chan), _per_site(prof[:, 1], data, chan)
-            var = S * np.clip(x, 0.0, None) + O * (2.0 if dark_src else 1.0)
+            # signal-dependent noise evaluated at the local mean, not at the noisy sample:
+            # weights 1/var(sample) favour samples that fell low and bias a weighted fit
+            # low by ~1/electrons (the harmonic-mean bias); the 5x5 same-colour mean cuts
+            # that correlation ~20x, at the cost of a smoothed variance next to edges
+            var = S * np.clip(_local_mean(x, chan), 0.0, None) + O * (2.0 if dark_src else 1.0)
 
         flat_src = None
         if opts.flat_field is not None:
