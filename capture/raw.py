@@ -20,8 +20,10 @@ and does the linearisation itself, so that every step is visible and recorded:
 
 Noise: per CFA sample ``var(x) = S * x + O`` (the DNG ``NoiseProfile`` convention, DNG 1.4
 spec p. 68: shot noise ``S`` and read-noise floor ``O`` in normalised units), taken from
-``capture.toml`` or the file's ``NoiseProfile`` tag, propagated through flat field, demosaic
-weights, white balance, the colour matrix and exposure (channels assumed independent).
+``capture.toml``, dark/flat frames or the file's ``NoiseProfile`` tag, evaluated at the local
+mean signal and propagated through flat field, demosaic (divided by the CFA sampling density,
+see :func:`_demosaic_linear`), white balance, the colour matrix and exposure (channels assumed
+independent).
 
 References
 ----------
