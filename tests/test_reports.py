@@ -129,3 +129,25 @@ def test_index_lists_failures_and_sorts(tmp_path):
     assert 'data-sort="0.01"' in html and 'data-type="num"' in html
     assert re.search(r'<tr class="row-failed">', html)
     assert "1 failed" in html
+
+
+def test_bench_section_renders_in_report_and_index(run_out, tmp_path):
+    """With --bench the report and index carry the accuracy-vs-time table and Pareto plot."""
+    from brdfcap.cmd_bench import report_section
+    from brdfcap.reports.html import ReportInputs, render_report
+
+    rows = [{"solver": s, "dtype": "float64", "device": "cpu", "lmax": 2, "samples": 1000,
+             "error": e, "time_s": t, "peak_mem_mb": 1.0}
+            for s, e, t in [("closed-form", 1e-3, 1e-3), ("iterative", 1.1e-3, 5e-3)]]
+    base = [{"device": "cpu", "dtype": "float64", "lmax": 2, "samples": 1000,
+             "closed_form_error": 1e-3, "closed_form_time_s": 1e-3, "adam_error": 1.04e-3,
+             "adam_time_s": 0.5, "adam_steps": 200, "reached": True, "ratio": 500.0}]
+    sec = report_section({"rows": rows, "baseline": base, "skipped": [], "machine": "test",
+                          "error_definition": "relative RMS"}, "brdfcap bench")
+    html = render_report(ReportInputs(results=run_out.results, figures={
+        k: "data:image/png;base64,AA==" for k in ("thumbnails", "residuals", "spectrum")},
+        summary=["s"], extras={"bench": sec}))
+    assert 'id="bench"' in html and "500×" in html and "Pareto" in html
+    recs = [CaptureRecord("a", "/c/a", str(tmp_path / "a"), "a", "ok", 1.0, summary={})]
+    idx = render_index(BatchOutcome(recs, tmp_path), tmp_path, {"bench": sec})
+    assert 'id="bench"' in idx and "brdfcap bench" in idx
