@@ -162,3 +162,21 @@ def test_raw_noise_standard_errors_are_consistent(tmp_path):
     z = torch.cat(zs)
     assert 0.5 < float(z.pow(2).mean()) < 1.8
     assert float(z.abs().max()) < 4.5
+
+
+@pytest.mark.slow
+def test_simulated_brackets_are_merged_on_load(tmp_path):
+    """A bracketed raw scene ("saturation" clips the 0 EV frame, +2 EV clips more) loads as one
+    merged view per pose: clipped samples come from the shorter exposures."""
+    effects = ["cfa", "black_white_level", "noise", "saturation", "brackets"]
+    (tmp_path / "b.toml").write_text(scene_text(width=64, views=2, extra=(
+        f"[camera_raw]\neffects = {effects}\nsaturate_fraction = 0.1\n")))
+    (tmp_path / "e.toml").write_text(scene_text(width=64, views=2))
+    raw = load_capture(simulate(tmp_path / "b.toml", tmp_path / "braw"))
+    ref = load_capture(simulate(tmp_path / "e.toml", tmp_path / "bexr"))
+    for v, r in zip(raw.views, ref.views):
+        assert v.info["bracket"].count(".dng") == 3
+        assert v.info["bracket_weights"] == "inverse variance"
+        lit = v.mask & (r.radiance.min(axis=2) > 0.05 * r.radiance.max())
+        assert lit.sum() > 0.5 * (r.radiance.min(axis=2) > 0.05 * r.radiance.max()).sum()
+        np.testing.assert_allclose(v.radiance[lit].mean(0), r.radiance[lit].mean(0), rtol=0.01)
