@@ -1,0 +1,308 @@
+"""Weighted linear least squares with per-band Tikhonov regularisation and conditioning.
+
+Every linear sub-problem of ``brdfcap.fit`` (inverse lighting, inverse SH-domain BRDF, each
+step of the bilinear factorisation, each closed-form step of Aldrian & Smith) is
+
+.. math:: \\min_x \\sum_i w_{ic} (b_{ic} - a_i^T x_c)^2 + \\lambda_c \\sum_l p_l \\|x_{l,c}\\|^2
+
+per colour channel ``c``, in float64, where ``x_l`` is the block of coefficients of band ``l``,
+``w = 1/σ²`` comes from the noise model (uniform when unknown) and ``p_l`` are per-band penalty
+weights (default 1: a white prior on the coefficients, in their physical units). The design
+matrix ``A`` may depend on the channel (``(N, K)`` or ``(N, C, K)``) and is consumed in chunks,
+so ``N × K`` never has to fit in memory.
+
+Regularisation rule (documented in ``docs/fitting.md#regularisation``)
+---------------------------------------------------------------------
+``λ_c`` is chosen per channel on a log grid ``λ = 10^t · mean(diag G)``, ``t ∈ [-14, 1]``, by
+
+* ``"gcv"`` (default) — generalised cross-validation (Golub, Heath & Wahba 1979, eq. 1.4):
+  minimise ``N · RSS(λ) / (N - tr H(λ))²``;
+* ``"discrepancy"`` — Morozov's discrepancy principle adapted to a known noise model: the
+  largest ``λ`` whose weighted residual exceeds the unregularised one by at most one standard
+  deviation of a χ² variable, ``RSS(λ) ≤ RSS(0) + sqrt(2 (N - K_eff))``;
+* ``"none"`` — ``λ = 0`` (pseudo-inverse, eigenvalues below ``EIG_RTOL`` of the largest dropped).
+
+All are evaluated in closed form from one eigen-decomposition of the (scaled) weighted normal
+matrix ``G = Aᵀ W A`` (``P^{-1/2} G P^{-1/2} = U diag(g) Uᵀ``):
+``x(λ) = P^{-1/2} U diag(1/(g+λ)) Uᵀ P^{-1/2} Aᵀ W b``,
+``RSS(λ) = RSS(0) + Σ_k c_k² λ² / (g_k (g_k+λ)²)`` with ``c = Uᵀ P^{-1/2} Aᵀ W b`` and ``RSS(0)``
+computed from the data (no cancellation), ``tr H(λ) = Σ g/(g+λ)``.
+
+Uncertainty
+-----------
+``Cov x(λ) = σ² P^{-1/2} U diag(g/(g+λ)²) Uᵀ P^{-1/2}`` with ``σ² = max(χ²_ν, 1)`` when the noise
+model is known (inflated when it underestimates the scatter) and ``σ² = χ²_ν`` when it is
+not (uniform weights). The *unregularised* standard error ``σ sqrt(diag G⁺)`` is what decides
+whether the data determine a coefficient (see :mod:`brdfcap.fit.conditioning`); it does not
+depend on the rule.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from brdfcap.errors import FitError
+
+__all__ = ["LinearSolution", "solve_wls", "noise_weights", "REGULARIZATION_RULES", "EIG_RTOL",
+           "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID"]
+
+#: Eigenvalues of the scaled normal matrix below ``EIG_RTOL × max`` are treated as exactly zero
+#: (singular values below 1e-6 of the largest: float64 normal equations keep no digit of them).
+EIG_RTOL = 1e-12
+#: A coefficient whose model-resolution diagonal (unregularised) is below this is not determined.
+RESOLUTION_LIMIT = 0.5
+#: Every sample carries at least this fraction of the channel's median |signal| as noise s.d.
+#: (storage quantisation and model error make a noise-free pixel impossible, and a zero
+#: variance would hand a pixel infinite weight). Costs nothing for real noise levels (>= 1e-4).
+VARIANCE_FLOOR_REL = 1e-6
+#: log10 of λ / mean(diag G) searched by the rules.
+#: A callable design with at most this many entries (N × K) is evaluated once and kept.
+MATERIALIZE_LIMIT = 2 ** 24
+GCV_GRID = torch.linspace(-14.0, 1.0, 61, dtype=torch.float64)
+
+REGULARIZATION_RULES = ("gcv", "discrepancy", "none")
+
+
+@dataclass
+class LinearSolution:
+    """Result of :func:`solve_wls`: estimate, uncertainty and conditioning per coefficient.
+
+    Shapes: ``K`` coefficients, ``C`` channels.
+    """
+
+    coefficients: torch.Tensor  # (K, C) regularised estimate
+    stderr: torch.Tensor  # (K, C) s.d. of the regularised estimate; inf where not determined
+    stderr_unregularised: torch.Tensor  # (K, C) σ sqrt(diag G+); inf where not determined
+    determined: torch.Tensor  # (K, C) bool: unregularised resolution diagonal > RESOLUTION_LIMIT
+    resolution: torch.Tensor  # (K, C) diagonal of the regularised model-resolution matrix
+    lam: torch.Tensor  # (C,) chosen λ (absolute, in units of the normal matrix)
+    lam_rel: torch.Tensor  # (C,) λ / mean(diag G)
+    chi2_reduced: torch.Tensor  # (C,)
+    dof: torch.Tensor  # (C,) N - tr H(λ)
+    rule: str
+    noise_source: str
+    n_samples: int
+    band: torch.Tensor  # (K,) band of each coefficient
+    band_singular: list[torch.Tensor] = field(default_factory=list)  # per band, (C, 2l'+1)
+    covariance: torch.Tensor | None = None  # (C, K, K) of the regularised estimate
+
+    @property
+    def snr(self) -> torch.Tensor:
+        """``|estimate| / stderr_unregularised``; 0 where the coefficient is not determined."""
+        return torch.where(self.determined,
+                           self.coefficients.abs() / self.stderr_unregularised,
+                           torch.zeros_like(self.coefficients))
+
+
+def noise_weights(radiance: torch.Tensor, variance: torch.Tensor | None
+                  ) -> tuple[torch.Tensor, str]:
+    """Least-squares weights ``1/σ²`` from a per-sample variance, floored (see module doc).
+
+    Parameters
+    ----------
+    radiance : torch.Tensor
+        ``(N, C)`` observations (for the floor's scale).
+    variance : torch.Tensor, optional
+        ``(N, C)`` noise variance; ``None`` gives uniform weights.
+
+    Returns
+    -------
+    tuple
+        ``(weights (N, C) float64, description of the noise source)``. Non-finite or negative
+        variances get weight 0 (the sample is ignored).
+    """
+    b = radiance.to(torch.float64)
+    if variance is None:
+        return torch.ones_like(b), "estimated from the fit residual (no noise model)"
+    scale = b.abs().nan_to_num(0.0).median(dim=0).values.clamp_min(1e-300)
+    var = variance.to(torch.float64) + (VARIANCE_FLOOR_REL * scale) ** 2
+    w = 1.0 / var
+    w = torch.where(torch.isfinite(w) & (var > 0), w, torch.zeros_like(w))
+    return w, "capture noise model (inflated by residual chi2 > 1)"
+
+
+def _design_chunks(design, n: int, chunk: int):
+    if callable(design):
+        for s in range(0, n, chunk):
+            yield s, min(s + chunk, n), design(s, min(s + chunk, n))
+    else:
+        for s in range(0, n, chunk):
+            yield s, min(s + chunk, n), design[s:s + chunk]
+
+
+def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torch.Tensor,
+              w: torch.Tensor, band: torch.Tensor, *, rule: str = "gcv",
+              noise_known: bool = True, band_penalty: torch.Tensor | None = None,
+              noise_source: str = "", chunk: int = 65536,
+              keep_covariance: bool = False,
+              channel_scale: torch.Tensor | None = None) -> LinearSolution:
+    """Per-channel weighted least squares with per-band Tikhonov (rule-chosen λ).
+
+    Parameters
+    ----------
+    design : torch.Tensor or callable
+        ``(N, K)`` or ``(N, C, K)`` design matrix, or ``f(start, stop)`` returning its rows.
+    b : torch.Tensor
+        ``(N, C)`` observations (cast to float64; non-finite rows get weight 0).
+    w : torch.Tensor
+        ``(N, C)`` weights ``1/σ²`` (0 = ignore the sample).
+    band : torch.Tensor
+        ``(K,)`` long, the SH band ``l`` of each unknown (for the penalty and band statistics).
+    rule : {"gcv", "discrepancy", "none"}
+        How λ is chosen (module doc). ``"discrepancy"`` needs ``noise_known``; without a noise
+        model it falls back to ``"gcv"`` and says so in ``rule``.
+    noise_known : bool
+        Whether ``w`` comes from a noise model (``σ² = max(χ², 1)``) or is uniform (``σ² = χ²``).
+    band_penalty : torch.Tensor, optional
+        ``(lmax+1,)`` per-band penalty weights ``p_l`` (default all 1).
+    channel_scale : torch.Tensor, optional
+        ``(C,)``: with a shared ``(N, K)`` design, channel ``c`` uses ``channel_scale[c] · A``.
+        The design must be finite (the caller sanitises its inputs).
+    keep_covariance : bool
+        Also return the full ``(C, K, K)`` covariance of the regularised estimate.
+
+    Returns
+    -------
+    LinearSolution
+
+    Raises
+    ------
+    FitError
+        When no sample has positive weight. Rank deficiency is *not* an error: the
+        undetermined coefficients are flagged, set by the regulariser (0 with ``"none"``).
+    """
+    if rule not in REGULARIZATION_RULES:
+        raise ValueError(f"unknown regularisation rule {rule!r}; valid: {REGULARIZATION_RULES}")
+    b = b.to(torch.float64)
+    w = w.to(torch.float64)
+    n, nch = b.shape
+    dev = b.device
+    band = band.to(dev)
+    k = int(band.shape[0])
+    finite = torch.isfinite(b)
+    w = torch.where(finite & torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
+    b = torch.where(finite, b, torch.zeros_like(b))
+    nuse = (w > 0).sum(0)  # (C,)
+    if int(nuse.max()) == 0:
+        raise FitError("no sample with positive weight to fit")
+    if rule == "discrepancy" and not noise_known:
+        rule_used = "gcv (discrepancy needs a noise model; none given)"
+    else:
+        rule_used = rule
+
+    gram = torch.zeros(nch, k, k, dtype=torch.float64, device=dev)
+    rhs = torch.zeros(nch, k, dtype=torch.float64, device=dev)
+    shared_w = all(torch.equal(w[:, 0], w[:, c]) for c in range(1, nch))
+    cs = None if channel_scale is None else channel_scale.to(torch.float64).to(dev)
+    if callable(design) and n * k <= MATERIALIZE_LIMIT:
+        design = design(0, n)  # small enough: evaluate once, reuse for the residual pass
+    for s, e, a in _design_chunks(design, n, chunk):
+        a = a.to(torch.float64)
+        ws = w[s:e]
+        if a.ndim == 2 and shared_w:  # one Gram for all channels, scaled
+            aw = a * ws[:, :1]
+            g1 = aw.T @ a
+            r1 = aw.T @ b[s:e]  # (K, C)
+            for c in range(nch):
+                sc = 1.0 if cs is None else cs[c]
+                gram[c] += g1 * sc * sc
+                rhs[c] += r1[:, c] * sc
+            continue
+        for c in range(nch):
+            ac = a if a.ndim == 2 else a[:, c, :]
+            if cs is not None:
+                ac = ac * cs[c]
+            awc = ac * ws[:, c:c + 1]
+            gram[c] += awc.T @ ac
+            rhs[c] += awc.T @ b[s:e, c]
+    if band_penalty is None:
+        pen = torch.ones(k, dtype=torch.float64, device=dev)
+    else:
+        pen = band_penalty.to(torch.float64).to(dev)[band].clamp_min(1e-300)
+    ps = pen.rsqrt()  # x = P^{-1/2} y, penalty λ||y||²
+
+    coef = torch.zeros(k, nch, dtype=torch.float64, device=dev)
+    se_reg = torch.full((k, nch), math.inf, dtype=torch.float64, device=dev)
+    se_unreg = torch.full_like(se_reg, math.inf)
+    determined = torch.zeros(k, nch, dtype=torch.bool, device=dev)
+    resol = torch.zeros(k, nch, dtype=torch.float64, device=dev)
+    lam_abs = torch.zeros(nch, dtype=torch.float64, device=dev)
+    lam_rel = torch.zeros(nch, dtype=torch.float64, device=dev)
+    chi2 = torch.zeros(nch, dtype=torch.float64, device=dev)
+    dofs = torch.zeros(nch, dtype=torch.float64, device=dev)
+    covs = torch.zeros(nch, k, k, dtype=torch.float64, device=dev) if keep_covariance else None
+    band_sv: list[list[torch.Tensor]] = [[] for _ in range(int(band.max()) + 1)]
+    grid = GCV_GRID.to(dev)
+    rss0_all = torch.zeros(nch, dtype=torch.float64, device=dev)
+    # pass 1: eigen-decompositions and the unregularised solution (for an accurate RSS(0))
+    eig = []
+    x0 = torch.zeros(k, nch, dtype=torch.float64, device=dev)
+    for c in range(nch):
+        g = gram[c] * ps[:, None] * ps[None, :]
+        g = 0.5 * (g + g.T)
+        scale = torch.diagonal(g).mean().clamp_min(1e-300)
+        ev, u = torch.linalg.eigh(g / scale)
+        ev = ev * scale
+        keep = ev > EIG_RTOL * ev.max().clamp_min(1e-300)
+        ct = u.T @ (ps * rhs[c])
+        x0[:, c] = ps * (u[:, keep] @ (ct[keep] / ev[keep]))
+        eig.append((ev, u, keep, ct, scale))
+        for l in range(len(band_sv)):
+            idx = band == l
+            gb = gram[c][idx][:, idx]
+            band_sv[l].append(torch.linalg.eigvalsh(0.5 * (gb + gb.T)).clamp_min(0.0).sqrt()
+                              .flip(0))
+    for s, e, a in _design_chunks(design, n, chunk):
+        a = a.to(torch.float64)
+        if a.ndim == 2:
+            pred = a @ (x0 if cs is None else x0 * cs)
+        else:
+            pred = torch.einsum("nck,kc->nc", a, x0)
+        rss0_all += (w[s:e] * (b[s:e] - pred) ** 2).sum(0)
+
+    for c in range(nch):
+        ev, u, keep, ct, scale = eig[c]
+        g, uk, ck = ev[keep], u[:, keep], ct[keep]
+        rss0 = rss0_all[c]
+        nc = nuse[c].to(torch.float64)
+        lams = torch.cat([torch.zeros(1, dtype=torch.float64, device=dev),
+                          10.0 ** grid * scale])
+        gg = g[None, :]
+        ll = lams[:, None]
+        rss = rss0 + (ck[None, :] ** 2 * ll ** 2 / (gg * (gg + ll) ** 2)).sum(-1)
+        tr = (gg / (gg + ll)).sum(-1)
+        if rule_used == "none":
+            j = 0
+        elif rule_used.startswith("gcv"):
+            gcv = nc * rss / (nc - tr).clamp_min(1.0) ** 2
+            j = int(torch.argmin(gcv))
+        else:  # discrepancy
+            ok = rss <= rss0 + math.sqrt(2.0 * max(float(nc - tr[0]), 1.0))
+            j = int(torch.nonzero(ok).max())
+        lam = lams[j]
+        filt = g / (g + lam)
+        x = ps * (uk @ (ck / (g + lam)))
+        coef[:, c] = x
+        dof = (nc - tr[j]).clamp_min(1.0)
+        chi = rss[j] / dof
+        sig2 = chi.clamp_min(1.0) if noise_known else chi
+        res_unreg = (uk * uk).sum(-1)
+        det = res_unreg > RESOLUTION_LIMIT
+        var_unreg = ((uk * uk) / g).sum(-1) * ps ** 2 * sig2
+        var_reg = ((uk * uk) * (g / (g + lam) ** 2)).sum(-1) * ps ** 2 * sig2
+        determined[:, c] = det
+        se_unreg[:, c] = torch.where(det, var_unreg.sqrt(), torch.full_like(x, math.inf))
+        se_reg[:, c] = torch.where(det, var_reg.sqrt(), torch.full_like(x, math.inf))
+        resol[:, c] = ((uk * uk) * filt).sum(-1)
+        lam_abs[c], lam_rel[c], chi2[c], dofs[c] = lam, lam / scale, chi, dof
+        if covs is not None:
+            covs[c] = (ps[:, None] * (uk * (g / (g + lam) ** 2)) @ uk.T * ps[None, :]) * sig2
+    return LinearSolution(
+        coefficients=coef, stderr=se_reg, stderr_unregularised=se_unreg, determined=determined,
+        resolution=resol, lam=lam_abs, lam_rel=lam_rel, chi2_reduced=chi2, dof=dofs,
+        rule=rule_used, noise_source=noise_source, n_samples=int(nuse.max()), band=band,
+        band_singular=[torch.stack(v) for v in band_sv], covariance=covs)
