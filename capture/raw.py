@@ -269,6 +269,8 @@ class LinearImage:
                 out[k] = _fmt(np.asarray(v, dtype=object))
             elif v is None:
                 out[k] = "none"
+            elif isinstance(v, float) and v.is_integer() and abs(v) < 2**53:
+                out[k] = int(v)  # levels: 16383, not 1.638e+04 in a 4-digit table
             else:
                 out[k] = v
         return out
