@@ -59,6 +59,16 @@ class ViewGeometry:
     light_distance: np.ndarray | None = None  # (H, W) distance to a point light, else None
     shadow: np.ndarray | None = None  # (H, W) bool cast/attached shadow; None = not computed
 
+    def summary(self) -> dict:
+        """Pixel counts for the report (``results.json`` ``images[i].geometry``)."""
+        out = {"hit_pixels": int(self.hit.sum()), "valid_pixels": int(self.valid.sum())}
+        if self.edge is not None:
+            out["edge_pixels"] = int(self.edge.sum())
+        if self.shadow is not None:
+            out["shadowed_pixels"] = int((self.shadow & self.valid).sum())
+        out["warnings"] = list(self.warnings)
+        return out
+
 
 @dataclass
 class Geometry:
@@ -67,6 +77,18 @@ class Geometry:
     mesh: Mesh
     views: list[ViewGeometry]
     shadows: ShadowPolicy | None = None  # the convexity decision, None without known lights
+
+    def summary(self) -> dict:
+        """Mesh and shadow-decision record for ``results.json`` ``geometry``."""
+        out: dict = {}
+        if self.mesh is not None:
+            info = {k: v for k, v in self.mesh.info.items() if not k.startswith("_")}
+            out["mesh"] = {"source": self.mesh.source, "normals": self.mesh.normals,
+                           "extent": self.mesh.extent, **info}
+        out["shadows"] = (self.shadows.as_dict() if self.shadows is not None else
+                          {"cast_shadow_rays": False,
+                           "decision": "no known lights (environment lighting): no shadow rays"})
+        return out
 
 
 @dataclass
@@ -312,5 +334,38 @@ def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
 
         return normal_map_geometry(capture)
     from .mesh import load_mesh
+    from .registration import register_capture
 
-    return compute_geometry(capture, load_mesh(capture.config.mesh), **kwargs)
+    cfg = capture.config
+    opts = registration_options(cfg)
+    mesh = load_mesh(cfg.mesh, units=cfg.mesh_units, normals=cfg.mesh_normals,
+                     smooth_iterations=cfg.smooth_normals)
+    mesh = register_capture(capture, mesh, refine=opts["refine"])
+    kwargs.setdefault("shadows", opts["shadows"])
+    geom = compute_geometry(capture, mesh, **kwargs)
+    for view, g in zip(capture.views, geom.views):
+        view.info["geometry"] = g.summary()
+    return geom
+
+
+def registration_options(config) -> dict:
+    """``[registration]`` keys: ``refine`` (bool, default true: silhouette refinement where
+    ``images[].mask`` is given) and ``shadows`` (``auto`` | ``always`` | ``never``)."""
+    from brdfcap.errors import CaptureError
+
+    tab = config.raw.get("registration", {}) if isinstance(config.raw, dict) else {}
+    if not isinstance(tab, dict):
+        raise CaptureError("'registration' must be a table", config.toml_path)
+    for key in tab:
+        if key not in ("refine", "shadows"):
+            config.warnings.append(f"unknown key 'registration.{key}' ignored (known: refine, "
+                                   "shadows)")
+    refine = tab.get("refine", True)
+    shadows = tab.get("shadows", "auto")
+    if not isinstance(refine, bool):
+        raise CaptureError(f"key 'registration.refine' must be true/false, got {refine!r}",
+                           config.toml_path)
+    if shadows not in ("auto", "always", "never"):
+        raise CaptureError(f"key 'registration.shadows' must be 'auto', 'always' or 'never', "
+                           f"got {shadows!r}", config.toml_path)
+    return {"refine": refine, "shadows": shadows}

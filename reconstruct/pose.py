@@ -37,7 +37,7 @@ from .mesh import Mesh
 __all__ = ["PoseResult", "project_points", "solve_pnp", "refine_pose", "silhouette_iou",
            "render_silhouette", "render_coverage", "mask_signed_distance", "reprojection_rms",
            "pose_difference_rms", "perturb_pose", "MIN_PNP_POINTS", "DEGENERACY_RATIO",
-           "CONTOUR_BAND_PX", "HUBER_PX"]
+           "CONTOUR_BAND_PX", "HUBER_PX", "CORRESPONDENCE_WEIGHT"]
 
 #: kornia's DLT needs at least 6 correspondences (11 unknowns of P, 2 equations per point).
 MIN_PNP_POINTS = 6
@@ -60,6 +60,11 @@ OUTWARD_PX = 0.25
 #: Refinement stops when two successive iterations move no mesh point by more than this
 #: (pixels): far below the 0.1 px target, and above the jitter of re-selecting contour points.
 CONVERGED_PX = 2e-3
+
+#: Weight of the correspondence term against the silhouette term (both mean squared pixels)
+#: when both are given: inverse variances of hand-picked points (~0.5 px) and of a mask
+#: outline (~0.1 px), (0.1 / 0.5)² = 0.04. Without a mask the weight is irrelevant.
+CORRESPONDENCE_WEIGHT = 0.04
 
 #: Silhouette residuals beyond this many pixels get Huber weights (``HUBER_PX / |r|``): they
 #: come from contour points matched to the wrong part of the mask boundary.
@@ -498,7 +503,7 @@ def _rays_hit(scene, camera: CameraModel, world_to_camera: np.ndarray, uv: np.nd
 def refine_pose(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray,
                 mask: np.ndarray | None = None, pixels: np.ndarray | None = None,
                 points: np.ndarray | None = None, iterations: int = 30,
-                correspondence_weight: float = 1.0, path: str | Path | None = None,
+                correspondence_weight: float | None = None, path: str | Path | None = None,
                 scene=None) -> PoseResult:
     r"""Refine a pose by aligning the mesh silhouette to a foreground mask (and correspondences).
 
@@ -549,6 +554,8 @@ def refine_pose(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray,
     state: dict = {}
 
     plain = replace(camera, distortion=None)
+    if correspondence_weight is None:
+        correspondence_weight = CORRESPONDENCE_WEIGHT
 
     def select(pose_np: np.ndarray) -> torch.Tensor:
         """Contour points on the outer silhouette: near the rendered outline, and the ray

@@ -20,8 +20,8 @@ from brdfcap.errors import GeometryError
 
 from .mesh import Mesh
 
-__all__ = ["RegistrationResult", "load_scan", "register_mesh_to_scan", "MIN_FITNESS",
-           "VOXEL_REL"]
+__all__ = ["RegistrationResult", "load_scan", "register_mesh_to_scan", "register_capture",
+           "read_mask", "MIN_FITNESS", "VOXEL_REL"]
 
 #: Default voxel size of the coarse stage, as a fraction of the mesh's bounding-box diagonal:
 #: 1/40 keeps ~1-3 thousand points for FPFH (fast RANSAC) while a bunny's ears and feet are
@@ -154,3 +154,86 @@ def register_mesh_to_scan(mesh: Mesh, scan: np.ndarray | str | Path,
             f"scan registration unreliable: ICP fitness {res.fitness:.2f} < {MIN_FITNESS} "
             "(the scan may show another object, be in other units, or overlap too little)")
     return res
+
+
+# --- capture-level registration ---------------------------------------------------------------
+
+def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
+    """Foreground mask/matte image as ``(H, W)`` float in ``[0, 1]`` (first channel; 8/16-bit
+    integers normalised). Values strictly between 0 and 1 are kept as a soft matte.
+
+    Raises
+    ------
+    GeometryError
+        Missing or unreadable file, or a size different from the camera's.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise GeometryError("foreground mask not found; check images[].mask in capture.toml",
+                            path)
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error:
+        raise GeometryError(f"cannot read foreground mask: {buf.geterror()}", path)
+    px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float64)
+    px = px[..., 0] if px.ndim == 3 else px
+    if px.shape != tuple(shape):
+        raise GeometryError(f"foreground mask is {px.shape[1]}x{px.shape[0]} but the camera is "
+                            f"{shape[1]}x{shape[0]}", path)
+    return np.clip(np.nan_to_num(px, nan=0.0), 0.0, 1.0)
+
+
+def register_capture(capture, mesh: Mesh, refine: bool = True) -> Mesh:
+    """Registration stage: align the mesh to ``geometry.scan`` (if given), then per view a PnP
+    pose from ``images[].correspondences`` and a silhouette refinement against
+    ``images[].mask`` (if given). Poses are replaced in place (``view.spec``), the statistics
+    go to ``view.info["registration"]`` (and so to ``results.json`` ``images[i]``); a view whose
+    inputs are wrong keeps its declared pose and gets a warning there. Returns the mesh in the
+    capture frame.
+    """
+    from dataclasses import replace
+
+    from .pose import refine_pose, solve_pnp
+
+    cfg = capture.config
+    if cfg.scan is not None:
+        res = register_mesh_to_scan(mesh, cfg.scan)
+        mesh = mesh.transformed(res.transformation)
+        mesh.info["scan_registration"] = res.as_dict()
+        cfg.warnings.extend(res.warnings)
+    cam = cfg.camera
+    scene = None
+    for view in capture.views:
+        spec = view.spec
+        if spec.correspondences is None and spec.mask_file is None:
+            continue
+        rec: dict = {"initial_world_to_camera": spec.world_to_camera.tolist()}
+        where = f"view {view.index} ({spec.file.name})"
+        try:
+            pose = spec.world_to_camera
+            corr = spec.correspondences
+            if corr is not None:
+                pnp = solve_pnp(corr.pixels, corr.points, cam, path=cfg.toml_path)
+                pose = pnp.world_to_camera
+                rec["pnp"] = pnp.as_dict()
+            if spec.mask_file is not None and refine:
+                if scene is None:
+                    from .geometry import _scene
+
+                    scene = _scene(mesh)
+                mask = read_mask(spec.mask_file, (cam.height, cam.width))
+                res = refine_pose(mesh, cam, pose, mask=mask,
+                                  pixels=None if corr is None else corr.pixels,
+                                  points=None if corr is None else corr.points,
+                                  path=spec.mask_file, scene=scene)
+                pose = res.world_to_camera
+                rec["refinement"] = res.as_dict()
+                cfg.warnings.extend(f"{where}: {w}" for w in res.warnings)
+            view.spec = replace(spec, world_to_camera=pose)
+            rec["world_to_camera"] = pose.tolist()
+        except GeometryError as exc:
+            rec["error"] = str(exc)
+            cfg.warnings.append(f"{where}: registration failed, declared pose kept: {exc}")
+        view.info["registration"] = rec
+    return mesh

@@ -99,7 +99,7 @@ def test_pnp_then_silhouette_and_correspondences(bunny):
     init = P.solve_pnp(px, pts, CAM)
     matte = P.render_coverage(mesh, CAM, true, 8, scene)
     res = P.refine_pose(mesh, CAM, init.world_to_camera, mask=matte, pixels=px, points=pts,
-                        correspondence_weight=0.05, scene=scene)
+                        scene=scene)
     assert res.method == "silhouette+correspondences"
     assert res.reprojection_rms is not None and res.iou > 0.99
     assert (P.pose_difference_rms(mesh, CAM, res.world_to_camera, true)
@@ -148,3 +148,49 @@ def test_refinement_wrong_inputs(bunny):
     off = P.perturb_pose(true, np.zeros(3), 25.0, 0.3 * mesh.extent, seed=4)
     res = P.refine_pose(mesh, CAM, off, mask=mask, scene=scene, iterations=3)
     assert np.all(np.isfinite(res.world_to_camera)) and np.isfinite(res.iou)
+
+
+def test_capture_registration_end_to_end(bunny, tmp_path):
+    """capture.toml with perturbed poses, correspondences and mattes: the reconstruct stage
+    registers every view; a view with degenerate correspondences keeps its pose with a
+    warning and never yields NaN."""
+    import tomllib
+
+    from brdfcap.capture.images import write_image
+    from brdfcap.capture.load import load_capture
+    from brdfcap.capture.simulate import simulate, write_capture_toml
+    from brdfcap.reconstruct.geometry import build_samples, compute_capture_geometry
+    from tests.test_shadows import _scene_toml, _write_ply
+
+    mesh, scene = bunny
+    (tmp_path / "scene.toml").write_text(_scene_toml(_write_ply(tmp_path / "b.ply", mesh), 0.45))
+    out = simulate(tmp_path / "scene.toml", tmp_path / "cap")
+    doc = tomllib.loads((out / "capture.toml").read_text())
+    cam = load_capture(out).config.camera
+    truths = []
+    for i, img in enumerate(doc["images"]):
+        true = np.asarray(img["world_to_camera"])
+        truths.append(true)
+        write_image(out / f"mask{i}.exr", np.repeat(
+            P.render_coverage(mesh, cam, true, 8, scene)[..., None], 3, -1))
+        px, pts = _correspondences(mesh, true, cam, n=8 if i == 0 else 5, noise=0.3, seed=i)
+        img["correspondences"] = [{"pixel": a.tolist(), "point": b.tolist()}
+                                  for a, b in zip(px, pts)]
+        img["mask"] = f"mask{i}.exr"
+        img["world_to_camera"] = P.perturb_pose(true, np.zeros(3), 2.0, 0.003, seed=i)
+    tables = {k: v for k, v in doc.items() if isinstance(v, dict)}
+    top = {k: v for k, v in doc.items() if not isinstance(v, (dict, list))}
+    write_capture_toml(out / "capture.toml", top, tables, doc["images"])
+    cap = load_capture(out)
+    geom = compute_capture_geometry(cap)
+    reg0 = cap.views[0].info["registration"]
+    assert reg0["pnp"]["reprojection_rms_px"] < 1.0
+    assert reg0["refinement"]["silhouette_iou"] > 0.99
+    assert P.pose_difference_rms(mesh, cam, cap.views[0].spec.world_to_camera, truths[0]) < 0.1
+    # view 1: only 5 correspondences -> registration error recorded, declared pose kept
+    assert "at least 6" in cap.views[1].info["registration"]["error"]
+    assert any("view 1" in w and "registration failed" in w for w in cap.config.warnings)
+    s = build_samples(cap, geom)
+    assert len(s) > 0 and torch.isfinite(s.normal).all() and torch.isfinite(s.wi).all()
+    assert cap.views[0].info["geometry"]["shadowed_pixels"] > 0
+    assert geom.summary()["shadows"]["cast_shadow_rays"] is True
