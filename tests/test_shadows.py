@@ -143,3 +143,32 @@ def test_shadow_mask_occluder_directional_and_point():
     assert shadow_policy(uv_sphere(1.0, 16, 32), "always").cast
     with pytest.raises(ValueError, match="auto/always/never"):
         shadow_policy(m, "sometimes")
+
+
+def test_point_light_falloff_and_shadows(bunny_capture, tmp_path):
+    """A point light near the bunny: 1/r² irradiance per pixel, cast shadows, exact fit."""
+    out, _, mesh, _ = bunny_capture
+    scene = _scene_toml(out / "mesh.ply", 0.45).replace(
+        """[[lighting.lights]]
+direction = [0.2, 0.9, 0.4]
+radiance = [3.0, 3.0, 3.0]
+[[lighting.lights]]
+direction = [-0.9, 0.1, 0.3]
+radiance = [2.0, 2.0, 2.0]""", """[[lighting.lights]]
+position = [0.05, 0.25, 0.12]
+intensity = [0.2, 0.2, 0.2]""")
+    (tmp_path / "scene.toml").write_text(scene)
+    cap_dir = simulate(tmp_path / "scene.toml", tmp_path / "cap")
+    truth = json.loads((cap_dir / "ground_truth.json").read_text())
+    assert "shadows" in truth["effects"]
+    cap = load_capture(cap_dir)
+    assert hasattr(cap.views[0].spec.light, "position")
+    geom = compute_geometry(cap, load_mesh(cap.config.mesh))
+    g = geom.views[0]
+    r = np.linalg.norm(np.array([0.05, 0.25, 0.12]) - g.position[g.hit], axis=-1)
+    assert np.allclose(g.light_distance[g.hit], r)
+    assert np.allclose(g.light_irradiance[g.hit][:, 0], 0.2 / r**2)
+    assert g.shadow[g.valid].any()
+    s = build_samples(cap, geom)
+    fit = fit_albedo_directional(s.normal, s.wi, s.light_radiance, s.radiance, s.variance)
+    assert torch.allclose(fit.albedo, torch.tensor(ALBEDO, dtype=torch.float64), rtol=1e-4)
