@@ -61,7 +61,8 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None
     sol : LinearSolution
         Output of :func:`brdfcap.fit.solve.solve_wls`.
     reference : torch.Tensor, optional
-        ``(C,)`` amplitude that criterion 2 compares standard errors with; default ``|x_0|``.
+        ``(C,)`` amplitude that criterion 2 compares standard errors with; default ``|x_0|``
+        of the *unregularised* estimate (the regulariser must not move the yardstick).
 
     Returns
     -------
@@ -71,7 +72,7 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None
         ``determined_fraction``, ``median_rel_stderr``, ``median_snr``, ``resolution``
         (median regularised resolution diagonal), ``ill_conditioned``.
     """
-    x = sol.coefficients
+    x = sol.coefficients_unregularised
     ref = (x[0].abs() if reference is None else reference.to(x)).clamp_min(1e-300)
     rows, first = [], None
     lmax = int(sol.band.max())
@@ -103,7 +104,7 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None
 def noise_level(sol: LinearSolution) -> float:
     """``ε = stderr(x_0)/|x_0|``, median over channels (``inf`` when ``x_0`` is undetermined)."""
     se = sol.stderr_unregularised[0]
-    x0 = sol.coefficients[0].abs().clamp_min(1e-300)
+    x0 = sol.coefficients_unregularised[0].abs().clamp_min(1e-300)
     return float((se / x0).median())
 
 

@@ -153,7 +153,8 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int,
     fit.regularization = {"rule": sol.rule, "lambda": sol.lam.tolist(),
                           "lambda_rel": sol.lam_rel.tolist(),
                           "penalty": "per-band Tikhonov lambda * sum_l p_l ||L_l||^2, p_l = "
-                          + ("1" if band_penalty is None else str(band_penalty.tolist()))}
+                          + ("l(l+1) + 0.01 (default_band_penalty)" if band_penalty is None
+                             else str(band_penalty.tolist()))}
     fit.noise_level = eps
     fit.prediction = prediction
     fit.brdf = spec

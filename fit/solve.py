@@ -7,7 +7,8 @@ step of the bilinear factorisation, each closed-form step of Aldrian & Smith) is
 
 per colour channel ``c``, in float64, where ``x_l`` is the block of coefficients of band ``l``,
 ``w = 1/σ²`` comes from the noise model (uniform when unknown) and ``p_l`` are per-band penalty
-weights (default 1: a white prior on the coefficients, in their physical units). The design
+weights, by default ``p_l = l(l+1) + 0.01`` (the Laplace-Beltrami / surface-gradient norm on the
+sphere, :func:`default_band_penalty`): the DC term is nearly free, high bands are damped most. The design
 matrix ``A`` may depend on the channel (``(N, K)`` or ``(N, C, K)``) and is consumed in chunks,
 so ``N × K`` never has to fit in memory.
 
@@ -47,7 +48,7 @@ import torch
 
 from brdfcap.errors import FitError
 
-__all__ = ["LinearSolution", "solve_wls", "noise_weights", "REGULARIZATION_RULES", "EIG_RTOL",
+__all__ = ["LinearSolution", "solve_wls", "noise_weights", "default_band_penalty", "REGULARIZATION_RULES", "EIG_RTOL",
            "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID"]
 
 #: Eigenvalues of the scaled normal matrix below ``EIG_RTOL × max`` are treated as exactly zero
@@ -75,6 +76,7 @@ class LinearSolution:
     """
 
     coefficients: torch.Tensor  # (K, C) regularised estimate
+    coefficients_unregularised: torch.Tensor  # (K, C) pseudo-inverse estimate (λ = 0)
     stderr: torch.Tensor  # (K, C) s.d. of the regularised estimate; inf where not determined
     stderr_unregularised: torch.Tensor  # (K, C) σ sqrt(diag G+); inf where not determined
     determined: torch.Tensor  # (K, C) bool: unregularised resolution diagonal > RESOLUTION_LIMIT
@@ -96,6 +98,19 @@ class LinearSolution:
         return torch.where(self.determined,
                            self.coefficients.abs() / self.stderr_unregularised,
                            torch.zeros_like(self.coefficients))
+
+
+def default_band_penalty(lmax: int) -> torch.Tensor:
+    """Default per-band Tikhonov weights ``p_l = l(l+1) + 0.01`` (module doc).
+
+    ``Σ_l l(l+1) ||x_l||²`` is the squared norm of the surface gradient of the function on the
+    sphere (the Laplace-Beltrami eigenvalues): the penalty leaves smooth, low-band content
+    almost untouched and damps high bands hardest, as a Wiener filter would for a spectrum that
+    decays with ``l``. The ``0.01`` keeps the DC term (null space of the Laplacian) barely
+    penalised rather than not at all, so the transformed problem stays well-scaled.
+    """
+    l = torch.arange(lmax + 1, dtype=torch.float64)
+    return l * (l + 1.0) + 0.01
 
 
 def noise_weights(radiance: torch.Tensor, variance: torch.Tensor | None
@@ -158,7 +173,7 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
     noise_known : bool
         Whether ``w`` comes from a noise model (``σ² = max(χ², 1)``) or is uniform (``σ² = χ²``).
     band_penalty : torch.Tensor, optional
-        ``(lmax+1,)`` per-band penalty weights ``p_l`` (default all 1).
+        ``(lmax+1,)`` per-band penalty weights ``p_l`` (default :func:`default_band_penalty`).
     channel_scale : torch.Tensor, optional
         ``(C,)``: with a shared ``(N, K)`` design, channel ``c`` uses ``channel_scale[c] · A``.
         The design must be finite (the caller sanitises its inputs).
@@ -220,7 +235,7 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
             gram[c] += awc.T @ ac
             rhs[c] += awc.T @ b[s:e, c]
     if band_penalty is None:
-        pen = torch.ones(k, dtype=torch.float64, device=dev)
+        pen = default_band_penalty(int(band.max())).to(dev)[band]
     else:
         pen = band_penalty.to(torch.float64).to(dev)[band].clamp_min(1e-300)
     ps = pen.rsqrt()  # x = P^{-1/2} y, penalty λ||y||²
@@ -302,7 +317,7 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         if covs is not None:
             covs[c] = (ps[:, None] * (uk * (g / (g + lam) ** 2)) @ uk.T * ps[None, :]) * sig2
     return LinearSolution(
-        coefficients=coef, stderr=se_reg, stderr_unregularised=se_unreg, determined=determined,
+        coefficients=coef, coefficients_unregularised=x0, stderr=se_reg, stderr_unregularised=se_unreg, determined=determined,
         resolution=resol, lam=lam_abs, lam_rel=lam_rel, chi2_reduced=chi2, dof=dofs,
         rule=rule_used, noise_source=noise_source, n_samples=int(nuse.max()), band=band,
         band_singular=[torch.stack(v) for v in band_sv], covariance=covs)
