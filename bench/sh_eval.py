@@ -25,6 +25,7 @@ Run::
 
     python bench/sh_eval.py                       # the README table (N = 10^6)
     python bench/sh_eval.py --n 100000 --lmax 2 8 --markdown out.md
+    python bench/sh_eval.py --filter-tables       # the l* tables of docs/sh.md
 """
 
 from __future__ import annotations
@@ -117,6 +118,46 @@ def _align(y: torch.Tensor, ref: torch.Tensor, lmax: int) -> torch.Tensor:
     return out
 
 
+def filter_tables() -> str:
+    """The l* / approximation tables of docs/sh.md §5 (``--filter-tables``)."""
+    import math
+
+    from brdfcap.fit.filters import (ill_conditioned_band, lambertian_filter,
+                                     microfacet_filter, microfacet_filter_approx, mirror_filter,
+                                     phong_filter, phong_filter_approx,
+                                     predicted_lstar_lambertian, predicted_lstar_microfacet,
+                                     predicted_lstar_phong)
+
+    out = ["| filter | ε | l* analytic | l* computed |", "|---|---|---|---|"]
+    for eps in (1e-2, 1e-3):
+        rows = [("Lambertian (clamped cosine)", predicted_lstar_lambertian(eps),
+                 ill_conditioned_band(lambertian_filter(2000), eps))]
+        rows += [(f"Phong s = {s}", predicted_lstar_phong(s, eps),
+                  ill_conditioned_band(phong_filter(s, 2000), eps)) for s in (10, 100, 1000)]
+        for sig in (0.05, 0.1, 0.2):
+            for dist, lab in (("beckmann", "Beckmann σ"), ("ggx", "GGX α")):
+                rows.append((f"{lab} = {sig}", predicted_lstar_microfacet(sig, eps),
+                             ill_conditioned_band(microfacet_filter(sig, 400, dist), eps)))
+        rows.append(("Mirror", math.inf, ill_conditioned_band(mirror_filter(2000), eps)))
+        for name, pred, got in rows:
+            out.append(f"| {name} | {eps:g} | {pred:.1f} | {'none' if got is None else got} |")
+    out += ["", "| s | l ≤ √s/2 | l ≤ √s | l ≤ 2√s | l ≤ s |", "|---|---|---|---|---|"]
+    for s in (10, 100, 1000, 10000):
+        d = (phong_filter(s, s) - phong_filter_approx(s, s)).abs()
+        e = [d[: int(L) + 1].max().item() for L in (math.sqrt(s) / 2, math.sqrt(s),
+                                                     2 * math.sqrt(s), s)]
+        out.append(f"| {s} | " + " | ".join(f"{v:.1e}" for v in e) + " |")
+    out += ["", "| σ | Beckmann, σl ≤ 1 | Beckmann, σl ≤ 2 | GGX (α = σ), σl ≤ 1 |",
+            "|---|---|---|---|"]
+    for sig in (0.02, 0.05, 0.1, 0.2, 0.4):
+        l1, l2 = int(1 / sig), int(2 / sig)
+        b, g = microfacet_filter(sig, l2), microfacet_filter(sig, l2, "ggx")
+        a = microfacet_filter_approx(sig, l2)
+        out.append(f"| {sig} | {(b[:l1 + 1] - a[:l1 + 1]).abs().max():.3f} | "
+                   f"{(b - a).abs().max():.3f} | {(g[:l1 + 1] - a[:l1 + 1]).abs().max():.3f} |")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=1_000_000)
@@ -126,7 +167,12 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", nargs="+", default=None)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--markdown", default=None, help="also write the table to this file")
+    ap.add_argument("--filter-tables", action="store_true",
+                    help="print the l* and approximation tables of docs/sh.md and exit")
     a = ap.parse_args(argv)
+    if a.filter_tables:
+        print(filter_tables())
+        return 0
     from brdfcap.fit import sh as S
 
     devices = a.devices or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
