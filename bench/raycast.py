@@ -40,7 +40,6 @@ def _median_time(fn, repeat: int) -> float:
 
 def bench(sizes: list[int], repeat: int) -> list[dict]:
     import open3d as o3d
-
     from brdfcap.capture.simulate import look_at
     from brdfcap.capture.types import CameraModel
     from brdfcap.reconstruct.camera import camera_rays
@@ -96,8 +95,8 @@ def markdown(rows: list[dict]) -> str:
     for r in rows:
         if r["mesh"] not in seen:
             seen.add(r["mesh"])
-            extra.append(f"- {r['mesh']}: convexity test {r['convexity_ms']:.0f} ms "
-                         f"({'convex: no shadow rays' if r['convex'] else 'not convex: shadow rays cast'}),"
+            verdict = "convex: no shadow rays" if r["convex"] else "not convex: shadow rays cast"
+            extra.append(f"- {r['mesh']}: convexity test {r['convexity_ms']:.0f} ms ({verdict}),"
                          f" scene + BVH build {r['bvh_ms']:.0f} ms")
     return head + body + "\n" + "\n".join(extra) + "\n"
 

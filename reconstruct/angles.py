@@ -85,7 +85,8 @@ def _theta_phi(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 @dataclass
 class SphericalAngles:
     """``θi, θo`` in ``[0, π]``; ``φi, φo`` in ``(-π, π]``; ``φ = φi - φo`` wrapped to
-    ``(-π, π]`` (radians, all ``(*,)``)."""
+    ``(-π, π]`` (radians, all ``(*,)``).
+    """
 
     theta_i: torch.Tensor
     theta_o: torch.Tensor
@@ -108,7 +109,8 @@ def spherical_angles(wi: torch.Tensor, wo: torch.Tensor, n: torch.Tensor) -> Sph
 @dataclass
 class RusinkiewiczAngles:
     """Half/difference angles of [Rus1998]_: ``θh, θd`` in ``[0, π]``, ``φh, φd`` in
-    ``(-π, π]`` (radians, all ``(*,)``)."""
+    ``(-π, π]`` (radians, all ``(*,)``).
+    """
 
     theta_h: torch.Tensor
     phi_h: torch.Tensor
@@ -152,7 +154,8 @@ def rusinkiewicz_to_directions(theta_h: torch.Tensor, phi_h: torch.Tensor,
                                theta_d: torch.Tensor, phi_d: torch.Tensor
                                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Local ``(wi, wo) (*, 3)`` for half/difference angles (inverse of
-    :func:`rusinkiewicz_angles` in the local frame, normal ``+z``)."""
+    :func:`rusinkiewicz_angles` in the local frame, normal ``+z``).
+    """
     def sph(t, p):
         return torch.stack([torch.sin(t) * torch.cos(p), torch.sin(t) * torch.sin(p),
                             torch.cos(t)], -1)

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from brdfcap.capture.types import CameraModel, Capture
 
-from brdfcap.capture.types import Capture, CameraModel
 from brdfcap.errors import GeometryError
 
 from .camera import camera_rays
@@ -218,7 +218,8 @@ def light_at(light, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 def add_lighting(g: ViewGeometry, light, scene, mesh: Mesh, cast_shadows: bool) -> None:
     """Fill ``wi``, ``light_irradiance``, ``light_distance`` and (if asked) ``shadow`` of a
-    view in place, for its hit pixels."""
+    view in place, for its hit pixels.
+    """
     h, w = g.hit.shape
     wi = np.zeros((h, w, 3))
     irr = np.zeros((h, w, 3))
@@ -350,7 +351,8 @@ def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
 
 def registration_options(config) -> dict:
     """``[registration]`` keys: ``refine`` (bool, default true: silhouette refinement where
-    ``images[].mask`` is given) and ``shadows`` (``auto`` | ``always`` | ``never``)."""
+    ``images[].mask`` is given) and ``shadows`` (``auto`` | ``always`` | ``never``).
+    """
     from brdfcap.errors import CaptureError
 
     tab = config.raw.get("registration", {}) if isinstance(config.raw, dict) else {}

@@ -277,8 +277,9 @@ def convexity_test(mesh: Mesh, rel_tol: float = CONVEXITY_REL_TOL) -> ConvexityT
     locally convex surface bounds a convex body: Tietze 1928, Nakajima 1928). An open surface
     must also have (a) every vertex on the surface of its convex hull within the tolerance and
     (b) every face's outward normal pointing away from the hull's interior (an inward-facing
-    bowl has all its vertices on the hull but shadows itself). For such a surface any ray leaving a point with ``n . ωi > 0`` leaves through the
-    point's supporting plane and meets no other part of the surface.
+    bowl has all its vertices on the hull but shadows itself). For such a surface any ray
+    leaving a point with ``n . ωi > 0`` leaves through the point's supporting plane and meets
+    no other part of the surface.
 
     Returns
     -------

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from brdfcap.capture.types import CameraModel
+
 from brdfcap.errors import GeometryError
 
 from .mesh import Mesh
@@ -181,7 +181,8 @@ def pose_difference_rms(mesh: Mesh, camera: CameraModel, pose_a: np.ndarray,
 def perturb_pose(world_to_camera: np.ndarray, center: np.ndarray, angle_deg: float,
                  shift: float, seed: int = 0) -> np.ndarray:
     """Rotate the camera about the object ``center`` by ``angle_deg`` (random axis) and move it
-    by ``shift`` world units (random direction): a synthetic pose error."""
+    by ``shift`` world units (random direction): a synthetic pose error.
+    """
     rng = np.random.default_rng(seed)
     axis = rng.standard_normal(3)
     axis /= np.linalg.norm(axis)
@@ -229,7 +230,8 @@ FD_STEP = 1e-6
 def _jacobian(residual_fn, pose: torch.Tensor, d0: torch.Tensor) -> torch.Tensor:
     """``(K, 6)`` Jacobian of the residuals w.r.t. a left increment, by central differences
     (6 unknowns against thousands of residuals: cheaper than autograd's row-by-row reverse
-    mode, and free of its per-op dispatch cost)."""
+    mode, and free of its per-op dispatch cost).
+    """
     scale = max(float(torch.linalg.norm(pose[:, 3])), 1e-12)
     cols = []
     for i in range(6):
@@ -345,7 +347,8 @@ def render_silhouette(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarr
 def render_coverage(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray,
                     supersample: int = 8, scene=None) -> np.ndarray:
     """``(H, W)`` float fraction of each pixel covered by the mesh (``supersample²`` rays per
-    pixel on a regular grid): an anti-aliased foreground matte."""
+    pixel on a regular grid): an anti-aliased foreground matte.
+    """
     from dataclasses import replace
 
     s = int(supersample)
@@ -466,7 +469,8 @@ class _EdgeTable:
 
 def _bilinear(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Sample an ``(H, W)`` image at continuous pixels ``(N, 2)`` (centres at +0.5), clamped to
-    the border outside the image. Plain indexing arithmetic, so forward-mode AD works."""
+    the border outside the image. Plain indexing arithmetic, so forward-mode AD works.
+    """
     h, w = img.shape
     x = (uv[:, 0] - 0.5).clamp(0, w - 1)
     y = (uv[:, 1] - 0.5).clamp(0, h - 1)
@@ -559,7 +563,8 @@ def refine_pose(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray,
 
     def select(pose_np: np.ndarray) -> torch.Tensor:
         """Contour points on the outer silhouette: near the rendered outline, and the ray
-        through their projection nudged :data:`OUTWARD_PX` outward misses the mesh."""
+        through their projection nudged :data:`OUTWARD_PX` outward misses the mesh.
+        """
         pts = edges.contour_points(camera, pose_np)
         rend = render_silhouette(mesh, camera, pose_np, scene)
         if not rend.any() or rend.all():

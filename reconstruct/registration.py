@@ -36,7 +36,8 @@ MIN_FITNESS = 0.3
 @dataclass
 class RegistrationResult:
     """Rigid ``transformation`` (4x4) taking mesh coordinates into the scan's (capture) frame,
-    with open3d's fitness (inlier fraction) and inlier RMSE (world units) of both stages."""
+    with open3d's fitness (inlier fraction) and inlier RMSE (world units) of both stages.
+    """
 
     transformation: np.ndarray
     fitness: float

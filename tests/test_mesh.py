@@ -6,10 +6,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from brdfcap.reconstruct.mesh import (
+    Mesh,
+    convexity_test,
+    load_mesh,
+    mesh_from_arrays,
+    units_scale,
+    uv_sphere,
+)
 
 from brdfcap.errors import GeometryError
-from brdfcap.reconstruct.mesh import (Mesh, convexity_test, load_mesh, mesh_from_arrays,
-                                      units_scale, uv_sphere)
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
 needs_bunny = pytest.mark.skipif(not BUNNY.is_file(), reason="shared bunny mesh not present")

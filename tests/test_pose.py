@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from brdfcap.capture.simulate import look_at
 from brdfcap.capture.types import CameraModel
-from brdfcap.errors import GeometryError
 from brdfcap.reconstruct import pose as P
 from brdfcap.reconstruct.geometry import _scene
 from brdfcap.reconstruct.mesh import load_mesh, mesh_from_arrays
+
+from brdfcap.errors import GeometryError
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
 W = 96
@@ -153,13 +153,14 @@ def test_refinement_wrong_inputs(bunny):
 def test_capture_registration_end_to_end(bunny, tmp_path):
     """capture.toml with perturbed poses, correspondences and mattes: the reconstruct stage
     registers every view; a view with degenerate correspondences keeps its pose with a
-    warning and never yields NaN."""
+    warning and never yields NaN.
+    """
     import tomllib
-
     from brdfcap.capture.images import write_image
     from brdfcap.capture.load import load_capture
     from brdfcap.capture.simulate import simulate, write_capture_toml
     from brdfcap.reconstruct.geometry import build_samples, compute_capture_geometry
+
     from tests.test_shadows import _scene_toml, _write_ply
 
     mesh, scene = bunny

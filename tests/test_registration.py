@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from brdfcap.errors import GeometryError
 from brdfcap.reconstruct.mesh import load_mesh
 from brdfcap.reconstruct.pose import _rodrigues
 from brdfcap.reconstruct.registration import load_scan, register_mesh_to_scan
+
+from brdfcap.errors import GeometryError
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
 

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from brdfcap.capture.load import load_capture
 from brdfcap.capture.simulate import simulate
 from brdfcap.fit.lighting import fit_albedo_directional
