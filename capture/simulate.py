@@ -283,7 +283,8 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         o3d.io.write_triangle_mesh(str(out / mesh_name), m, write_ascii=False)
         rc = None
     else:
-        mesh = load_mesh(scene.mesh)
+        units = scene.raw.get("geometry", {}).get("units", "m")
+        mesh = load_mesh(scene.mesh, units=units)
         mesh_name = "mesh" + scene.mesh.suffix
         shutil.copyfile(scene.mesh, out / mesh_name)
         rc = _scene(mesh)
@@ -338,7 +339,10 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         cam_tab.update(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy)
     else:
         cam_tab.update(pixel_size=cam.pixel_size, cx=cam.cx, cy=cam.cy)
-    tables = {"geometry": {"mesh": mesh_name}, "camera": cam_tab,
+    geom_tab = {"mesh": mesh_name}
+    if scene.shape == "mesh" and scene.raw.get("geometry", {}).get("units", "m") != "m":
+        geom_tab["units"] = scene.raw["geometry"]["units"]
+    tables = {"geometry": geom_tab, "camera": cam_tab,
               "lighting": {"kind": scene.lighting_kind}}
     if scene.noise is not None:
         tables["noise"] = {"read": scene.noise.read, "gain": scene.noise.gain,
