@@ -37,11 +37,12 @@ import signal
 import sys
 import threading
 import time
-import tomllib
 import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
+
+import tomllib
 
 from brdfcap import __version__
 from brdfcap.atomic import write_json_atomic
@@ -183,7 +184,7 @@ def _source_hash() -> str:
 
 
 def code_version() -> dict[str, Any]:
-    """brdfcap version, SHA-256 of its source files, dependency versions, and their hash."""
+    """Brdfcap version, SHA-256 of its source files, dependency versions, and their hash."""
     deps = dependency_versions()
     src = _source_hash()
     h = hashlib.sha256(json.dumps({"source": src, "versions": deps}, sort_keys=True).encode())
@@ -257,7 +258,7 @@ def _device_info(device: str) -> dict:
 
 
 def config_record(run_options, cli: dict | None = None, prov: dict | None = None) -> dict:
-    """The configuration actually used, written as ``config.json`` next to ``results.json``.
+    """Record the configuration actually used (``config.json`` next to ``results.json``).
 
     ``cli`` holds every command-line option with its resolved value (defaults included); it is
     empty when the pipeline is called from Python.
@@ -316,12 +317,12 @@ class BatchOutcome:
         return [r for r in self.records if r.status == "failed"]
 
     def count(self, status: str) -> int:
-        """Number of records with ``status``."""
+        """Count the records with ``status``."""
         return sum(r.status == status for r in self.records)
 
 
 def summarize_results(results: dict) -> dict:
-    """The key recovered values of one ``results.json`` shown in the index."""
+    """Extract the key recovered values of one ``results.json`` for the index."""
     out: dict[str, Any] = {"capture": results.get("capture")}
     lt = results.get("lighting")
     if lt:

@@ -47,6 +47,13 @@ def find_captures(root: Path) -> list[Path]:
     return _find(root)
 
 
+def _batch_echo(line: str) -> None:
+    """Print one line per finished capture above the progress bars (errors to stderr)."""
+    from tqdm import tqdm
+
+    tqdm.write(line, file=sys.stderr if line.startswith("error") else sys.stdout)
+
+
 @main.command("run")
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True,
@@ -97,7 +104,7 @@ def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, jobs: int,
     try:
         outcome = run_batch(path, out, opts, jobs=jobs, force=force, progress=progress, cli=cli,
                             report_extras=extras, hash_extra=hash_extra,
-                            echo=None if single else click.echo)
+                            echo=None if single else _batch_echo)
     except KeyboardInterrupt:
         click.echo("interrupted: finished captures are complete; re-run to do the rest",
                    err=True)

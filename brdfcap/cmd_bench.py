@@ -27,8 +27,9 @@ Peak memory is the largest increase of the process's resident set, sampled every
 first run in which glibc returns freed blocks over 64 KiB to the system at once, so that RSS
 tracks live tensors (CPU; blocks living under 2 ms can be missed), or
 ``torch.cuda.max_memory_allocated`` (CUDA). Wall time is the best of 3 further runs, or the first
-run's time when it took over a second; one torch thread by default (``--threads``). Cells whose estimated cost exceeds the default
-budget are listed as skipped, with ``--full`` to run them.
+run's time when it took over a second; one torch thread by default (``--threads``). Cells
+whose estimated cost exceeds the default budget are listed as skipped, with ``--full`` to run
+them.
 """
 
 from __future__ import annotations
@@ -36,7 +37,6 @@ from __future__ import annotations
 import base64
 import csv
 import io
-import json
 import math
 import os
 import platform
@@ -94,7 +94,7 @@ def _uniform_sphere(n: int, gen: torch.Generator) -> torch.Tensor:
 
 
 def make_scene(n_max: int, seed: int = 0) -> dict:
-    """Normals, noisy radiance (training pool) and noise-free held-out radiance, float64."""
+    """Draw normals, noisy radiance (training pool) and noise-free held-out radiance."""
     from brdfcap.fit.datasets import GRACE_RH2001
     from brdfcap.fit.render import lambertian_radiance_sh
 
@@ -111,7 +111,7 @@ def make_scene(n_max: int, seed: int = 0) -> dict:
 
 
 def _design(normals: torch.Tensor, lmax: int) -> torch.Tensor:
-    """``A = Y(n) Â_l / π`` ``(N, K)`` in the normals' dtype (R&H 2001 eq. 7-8, albedo 1)."""
+    """Build ``A = Y(n) Â_l / π`` ``(N, K)`` in the normals' dtype (R&H 2001 eqs. 7-8)."""
     from brdfcap.fit.filters import lambertian_filter
     from brdfcap.fit.sh import band_of_index, real_sh
 
@@ -136,7 +136,7 @@ _CHUNK = 65536
 
 
 def solve_closed_form(n: torch.Tensor, b: torch.Tensor, lmax: int) -> torch.Tensor:
-    """Normal equations, column-equilibrated, eigen-decomposed and truncated (dtype-aware)."""
+    """Solve the normal equations: equilibrated, eigen-decomposed, truncated (dtype-aware)."""
     k = (lmax + 1) ** 2
     g = torch.zeros(k, k, dtype=n.dtype, device=n.device)
     r = torch.zeros(k, b.shape[1], dtype=n.dtype, device=n.device)
@@ -187,8 +187,11 @@ def solve_cgls(n: torch.Tensor, b: torch.Tensor, lmax: int, tol: float | None = 
 
 
 def solve_pipeline(n: torch.Tensor, b: torch.Tensor, lmax: int) -> torch.Tensor:
-    """The pipeline's fit as ``brdfcap run`` calls it: float64 WLS under the capture's noise
-    model, re-weighted once at the fitted signal, with conditioning and standard errors."""
+    """Run the pipeline's fit as ``brdfcap run`` calls it.
+
+    Float64 WLS under the capture's noise model, re-weighted once at the fitted signal, with
+    conditioning and standard errors.
+    """
     from brdfcap.capture.types import NoiseModel
     from brdfcap.fit.lighting import fit_lighting_lambertian
 
@@ -285,8 +288,11 @@ def _sync(device: str) -> None:
 
 
 def time_solver(fn, n, b, lmax, device) -> tuple[torch.Tensor, float, int]:
-    """Peak memory of a first run; wall time: best of 3 further runs, or the first run's own
-    time when it took over 1 s (where a page fault per fresh block is a small share)."""
+    """Measure peak memory (first run) and wall time (best of 3 further runs).
+
+    When the first run took over 1 s its own time is used (a page fault per fresh block is then
+    a small share).
+    """
     _mmap_threshold(_MEM_RUN_THRESHOLD)
     try:
         with _PeakMemory(device) as mem:
@@ -528,7 +534,7 @@ def pareto_figure(result: dict):
 
 
 def report_section(result: dict, command: str) -> dict:
-    """The bench section of the HTML reports (``reports/templates/bench_section.html``)."""
+    """Build the bench section of the HTML reports (``templates/bench_section.html``)."""
     from brdfcap.reports.figures import fig_to_data_uri
 
     front = {id(r) for r in pareto_front(result["rows"])}
@@ -612,7 +618,7 @@ def _ints(text: str) -> tuple[int, ...]:
                    "machine).")
 def bench_cmd(out: Path, full: bool, lmax: str, samples: str | None, solvers: str,
               devices: str | None, baseline_cap: float, no_baseline: bool, threads: int) -> None:
-    """What accuracy costs in time: SH inverse-lighting error vs wall time and memory."""
+    """Measure what accuracy costs in time: SH inverse-lighting error vs time and memory."""
     import sys
 
     devs = tuple(devices.split(",")) if devices else (

@@ -31,7 +31,7 @@ _CHANNELS = ("R", "G", "B")
 
 @lru_cache(maxsize=1)
 def load_results_schema() -> dict:
-    """The JSON Schema (draft 2020-12) that every ``results.json`` satisfies."""
+    """Load the JSON Schema (draft 2020-12) that every ``results.json`` satisfies."""
     return json.loads(SCHEMA_PATH.read_text())
 
 

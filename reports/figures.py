@@ -148,7 +148,6 @@ def sh_radiance_latlong(coefficients: np.ndarray, height: int = 64) -> np.ndarra
     pixel centres (``docs/conventions.md``). ``coefficients``: ``((lmax+1)², C)``.
     """
     import torch
-
     from brdfcap.fit.sh import directions_from_angles, real_sh
 
     c = torch.as_tensor(np.asarray(coefficients, np.float64))
@@ -216,7 +215,6 @@ def relit_spheres_figure(coefficients: np.ndarray, albedo=(1.0, 1.0, 1.0), n_px:
     sphere, ``L(r)`` with ``r = 2 (n·ωo) n − ωo`` (the lighting itself, band-limited to lmax).
     """
     import torch
-
     from brdfcap.fit.render import irradiance_sh
     from brdfcap.fit.sh import real_sh
 
@@ -257,7 +255,7 @@ def relit_spheres_figure(coefficients: np.ndarray, albedo=(1.0, 1.0, 1.0), n_px:
 
 def lighting_figures(coefficients: np.ndarray, ill_from: int | None,
                      albedo=(1.0, 1.0, 1.0)) -> dict[str, str]:
-    """Data URIs ``{"lighting_latlong", "relit_spheres"}`` for the report."""
+    """Render the lighting figures as data URIs ``{"lighting_latlong", "relit_spheres"}``."""
     return {"lighting_latlong": fig_to_data_uri(latlong_lighting_figure(coefficients, ill_from)),
             "relit_spheres": fig_to_data_uri(relit_spheres_figure(coefficients, albedo))}
 
@@ -267,7 +265,7 @@ def lighting_figures(coefficients: np.ndarray, ill_from: int | None,
 # --------------------------------------------------------------------------------------------
 
 def brdf_spec_from_results(brdf: dict):
-    """A :class:`brdfcap.fit.brdf_models.BRDFSpec` from ``results.json["brdf"]``, or ``None``.
+    """Build a :class:`brdfcap.fit.brdf_models.BRDFSpec` from ``results.json["brdf"]``.
 
     Understands ``model`` with ``parameters`` ``kd`` or ``albedo`` (RGB), ``ks``, ``s``,
     ``sigma``, ``f0``; returns ``None`` for a model it cannot evaluate.
@@ -305,7 +303,6 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     ``θo``, green channel.
     """
     import torch
-
     from brdfcap.fit.brdf_models import brdf_value
 
     ti = np.radians(np.linspace(-89.0, 89.0, 357))
@@ -341,7 +338,7 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
 
 
 def brdf_figures(brdf: dict) -> dict[str, str]:
-    """Data URI ``{"brdf_plots"}`` for the report, empty when the model cannot be evaluated."""
+    """Render ``{"brdf_plots": data URI}``; empty when the model cannot be evaluated."""
     spec = brdf_spec_from_results(brdf)
     if spec is None:
         return {}

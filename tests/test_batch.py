@@ -54,7 +54,6 @@ seed = 0
 def tiny_template(tmp_path_factory) -> Path:
     """One simulated tiny capture whose mesh is a coarse shared ``../sphere.ply``."""
     import open3d as o3d
-
     from brdfcap.capture.simulate import simulate
     from brdfcap.reconstruct.mesh import uv_sphere
 
@@ -88,14 +87,17 @@ def make_root(template: Path, root: Path, n: int, corrupt: tuple[int, ...] = ())
 
 
 def _code_hash(out: Path) -> str:
-    """The code hash recorded by the latest run under ``out`` (any capture's results.json)."""
+    """Read the code hash recorded by the latest run under ``out``."""
     res = sorted(out.glob("**/results.json"), key=lambda p: p.stat().st_mtime_ns)[-1]
     return json.loads(res.read_text())["provenance"]["code_hash"]
 
 
 def _skip_if_code_changed(before: str) -> None:
-    """Other people editing this working tree between two CLI runs change the code hash, and
-    then re-running is the right answer; in CI (a clean checkout) this never triggers."""
+    """Skip when brdfcap's source changed since ``before`` was recorded.
+
+    Other people editing this working tree between two CLI runs change the code hash, and then
+    re-running is the right answer; in CI (a clean checkout) this never triggers.
+    """
     from brdfcap.batch import _source_hash, code_version
 
     _source_hash.cache_clear()

@@ -11,8 +11,15 @@ import json
 import torch
 from click.testing import CliRunner
 
-from brdfcap.cmd_bench import (BenchConfig, make_scene, pareto_front, rel_error, run_bench,
-                               solve_cgls, solve_closed_form)
+from brdfcap.cmd_bench import (
+    BenchConfig,
+    make_scene,
+    pareto_front,
+    rel_error,
+    run_bench,
+    solve_cgls,
+    solve_closed_form,
+)
 
 
 def test_closed_form_and_cgls_agree_in_float64():

@@ -71,9 +71,10 @@ def test_self_check_catches_a_broken_page(tmp_path):
 
 def test_reports_and_index_load_cleanly(tmp_path):
     """A report and an index with a failed capture: no errors, every image loads."""
+    from brdfcap.reports.index import write_index
+
     from brdfcap.batch import BatchOutcome, CaptureRecord, summarize_results
     from brdfcap.pipeline import RunOptions, run_capture
-    from brdfcap.reports.index import write_index
 
     cap = _template(tmp_path)
     out = tmp_path / "out"
@@ -97,11 +98,9 @@ def test_reports_and_index_load_cleanly(tmp_path):
 
 def _template(tmp_path: Path) -> Path:
     import open3d as o3d
-
-    from test_batch import TINY_SCENE
-
     from brdfcap.capture.simulate import simulate
     from brdfcap.reconstruct.mesh import uv_sphere
+    from test_batch import TINY_SCENE
 
     (tmp_path / "scene.toml").write_text(TINY_SCENE)
     cap = simulate(tmp_path / "scene.toml", tmp_path / "tmpl" / "capture")

@@ -11,21 +11,24 @@ import re
 import jsonschema
 import numpy as np
 import pytest
-
-from brdfcap.batch import BatchOutcome, CaptureRecord
-from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.reports import figures as F
 from brdfcap.reports.index import render_index
-from brdfcap.results_io import (coefficient_rows, coefficients_csv, load_results_schema,
-                                validate_results)
+
+from brdfcap.batch import BatchOutcome, CaptureRecord
+from brdfcap.results_io import (
+    coefficient_rows,
+    coefficients_csv,
+    load_results_schema,
+    validate_results,
+)
 
 
 @pytest.fixture(scope="module")
 def run_out(tmp_path_factory):
     """One tiny capture run through the pipeline (shared by the tests of this module)."""
+    from brdfcap.capture.simulate import simulate
     from test_batch import TINY_SCENE  # noqa: F401  (same tiny scene)
 
-    from brdfcap.capture.simulate import simulate
     from brdfcap.pipeline import RunOptions, run_capture
 
     d = tmp_path_factory.mktemp("rep")
@@ -133,8 +136,9 @@ def test_index_lists_failures_and_sorts(tmp_path):
 
 def test_bench_section_renders_in_report_and_index(run_out, tmp_path):
     """With --bench the report and index carry the accuracy-vs-time table and Pareto plot."""
-    from brdfcap.cmd_bench import report_section
     from brdfcap.reports.html import ReportInputs, render_report
+
+    from brdfcap.cmd_bench import report_section
 
     rows = [{"solver": s, "dtype": "float64", "device": "cpu", "lmax": 2, "samples": 1000,
              "error": e, "time_s": t, "peak_mem_mb": 1.0}
