@@ -23,9 +23,9 @@ Models (all with an optional Lambertian term ``kd/π``):
   ``B_s = E cosθi · F D G / (4 cosθi cosθo)``.
 * ``mirror``: ``Â_l = 1`` (seed eq. 1): ``B_s = ks L(r)``.
 
-Note: the SH engineer (issue 3) is adding ``phong_filter`` / ``microfacet_filter`` to
-:mod:`brdfcap.fit.filters`; the private filters here are used until then and are checked
-against each other in ``tests/test_inverse_lighting.py`` once both exist.
+The Phong filter is :func:`brdfcap.fit.filters.phong_filter`; the microfacet SH filter here is
+R&H's Gaussian approximation on purpose (the SH-domain model *is* that approximation), while
+:func:`brdfcap.fit.filters.microfacet_filter` integrates the full lobe by quadrature.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .filters import lambertian_filter
+from .filters import lambertian_filter, phong_filter
 
 __all__ = ["BRDF_MODELS", "BRDFSpec", "specular_filter", "diffuse_filter", "phong_sh_filter",
            "microfacet_sh_filter", "render_sh", "render_directional", "brdf_value",
@@ -88,15 +88,10 @@ class BRDFSpec:
 def phong_sh_filter(s: float, lmax: int) -> torch.Tensor:
     r"""Exact ``Â_l = Λ_l ρ̂_l`` of R&H's Phong lobe ``(s+1)/(2π) max(t,0)^s`` (module doc).
 
-    ``Â_0 = 1``; for ``s = 1`` it equals the Lambertian ``Â_l/π``.
+    ``Â_0 = 1``; for ``s = 1`` it equals the Lambertian ``Â_l/π``. Delegates to
+    :func:`brdfcap.fit.filters.phong_filter` (the same recurrence).
     """
-    out = torch.zeros(lmax + 1, dtype=torch.float64)
-    out[0] = 1.0
-    if lmax >= 1:
-        out[1] = (s + 1.0) / (s + 2.0)
-    for l in range(2, lmax + 1):
-        out[l] = out[l - 2] * (s - l + 2.0) / (s + l + 1.0)
-    return out
+    return phong_filter(s, lmax)
 
 
 def microfacet_sh_filter(sigma: float, lmax: int) -> torch.Tensor:

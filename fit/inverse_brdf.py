@@ -1,0 +1,171 @@
+"""Problem 2: inverse BRDF with known lighting — SH-domain filter and parametric fits.
+
+SH domain (R&H SIGGRAPH 2001, eqs. 7-8 / seed): for a BRDF radially symmetric about the
+reflected direction, ``B(r) = Σ_l Â_l Σ_m L_lm Y_lm(r)`` with ``Â_l = Λ_l ρ̂_l``, *linear in the
+filter* ``Â_l``; an optional Lambertian term ``kd/π Σ Â^d_l L_lm Y_lm(n)`` adds one unknown per
+channel. Unknowns per channel: ``[Â_0 … Â_lmax, kd]``, solved by
+:func:`brdfcap.fit.solve.solve_wls` (same Tikhonov rule and uncertainty as the lighting).
+R&H's well-posedness result appears directly in the conditioning: the column of band ``l`` is
+``Σ_m L_lm Y_lm(r)``, so bands where the lighting has no energy are *not determined*, and the
+predicted ``l*`` is the first band whose lighting amplitude ``sqrt(mean_m L_lm²)/|L_00|`` falls
+below the noise level ``ε``.
+
+Known lighting may be SH coefficients, a light probe file (lat-long HDR, projected by
+:func:`brdfcap.fit.envmap.envmap_sh_from_file`) or distant lights (then use
+:func:`fit_brdf_parametric` / :func:`fit_brdf_sh_directional`).
+
+Isotropic ``ρ̂_lpq`` (view-dependent) is not implemented yet; see ``docs/fitting.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from brdfcap.errors import FitError
+
+from .brdf_models import diffuse_filter
+from .conditioning import band_statistics, noise_level
+from .parametric import ParametricFit, fit_brdf_parametric
+from .sh import band_of_index, real_sh
+from .solve import LinearSolution, noise_weights, solve_wls
+
+__all__ = ["BRDFSHFit", "fit_brdf_sh", "load_known_lighting", "fit_brdf_parametric",
+           "ParametricFit"]
+
+
+@dataclass
+class BRDFSHFit:
+    """Recovered SH-domain BRDF filter ``Â_l`` per channel (and ``kd`` when fitted)."""
+
+    lmax: int
+    filter: torch.Tensor  # (lmax+1, C) Â_l = Λ_l ρ̂_l
+    filter_stderr: torch.Tensor  # (lmax+1, C)
+    kd: torch.Tensor | None  # (C,) or None
+    kd_stderr: torch.Tensor | None
+    determined: torch.Tensor  # (lmax+1, C)
+    bands: list[dict]
+    ill_conditioned_from_l: int | None
+    noise_level: float
+    prediction: dict
+    solution: LinearSolution
+    checks: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """JSON-ready dict."""
+        def fin(t):
+            return [[v if math.isfinite(v) else None for v in row] for row in t.tolist()]
+        return {"kind": "sh-radial", "lmax": self.lmax, "filter": self.filter.tolist(),
+                "filter_stderr": fin(self.filter_stderr),
+                "kd": None if self.kd is None else self.kd.tolist(),
+                "kd_stderr": None if self.kd_stderr is None else self.kd_stderr.tolist(),
+                "determined": self.determined.tolist(), "bands": self.bands,
+                "ill_conditioned_from_l": self.ill_conditioned_from_l,
+                "noise_level": self.noise_level, "prediction": self.prediction,
+                "regularization": {"rule": self.solution.rule,
+                                   "lambda_rel": self.solution.lam_rel.tolist()},
+                "checks": self.checks}
+
+
+def load_known_lighting(source, lmax: int) -> torch.Tensor:
+    """Known lighting as SH ``((lmax+1)², C)``: a tensor/array of coefficients or a probe file."""
+    if isinstance(source, (str, Path)):
+        from .envmap import envmap_sh_from_file
+
+        return envmap_sh_from_file(source, lmax).coeffs.to(torch.float64)
+    x = torch.as_tensor(source, dtype=torch.float64)
+    if x.ndim != 2 or int(math.isqrt(x.shape[0])) ** 2 != x.shape[0]:
+        raise ValueError("SH lighting must be ((lmax+1)^2, C)")
+    return x
+
+
+def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
+                light_sh: torch.Tensor, lmax: int, variance: torch.Tensor | None = None,
+                diffuse: bool = True, rule: str = "gcv") -> BRDFSHFit:
+    """Recover the radially symmetric SH-domain BRDF ``Â_l`` (and ``kd``) under known lighting.
+
+    Parameters
+    ----------
+    normal, reflected : torch.Tensor
+        ``(N, 3)`` unit normals and reflected view directions (world frame).
+    radiance : torch.Tensor
+        ``(N, C)`` linear radiance (NaN = removed sample).
+    light_sh : torch.Tensor
+        ``((lmax_L+1)², C)`` known lighting (:func:`load_known_lighting`). Bands of the BRDF
+        above ``lmax_L`` are not excited and come back flagged as not determined.
+    lmax : int
+        Highest BRDF band.
+    diffuse : bool
+        Also fit a Lambertian albedo ``kd`` per channel.
+
+    Returns
+    -------
+    BRDFSHFit
+        ``filter[l]`` is ``Λ_l ρ̂_l`` (R&H 2001); ``ρ̂_l = filter[l] / Λ_l``.
+    """
+    f64 = torch.float64
+    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
+    r = torch.nn.functional.normalize(reflected.to(f64), dim=-1)
+    b = radiance.to(f64)
+    ok = torch.isfinite(n).all(-1) & torch.isfinite(r).all(-1)
+    n = torch.where(ok[:, None], n, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
+    r = torch.where(ok[:, None], r, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
+    b = torch.where(ok[:, None], b, torch.full_like(b, math.nan))
+    if b.shape[0] == 0:
+        raise FitError("no samples to fit")
+    L = light_sh.to(f64).to(n.device)
+    ll = int(math.isqrt(L.shape[0])) - 1
+    lw = max(ll, lmax)
+    Lp = torch.zeros((lw + 1) ** 2, L.shape[1], dtype=f64, device=n.device)
+    Lp[: L.shape[0]] = L
+    band_l = band_of_index(lw).to(n.device)
+    fd = diffuse_filter(lw).to(n.device)[band_l]
+
+    def design(s: int, e: int) -> torch.Tensor:
+        y = real_sh(r[s:e], lw)  # (n, K)
+        cols = [torch.einsum("nk,kc->nc", y[:, band_l == l], Lp[band_l == l])
+                for l in range(lmax + 1)]
+        if diffuse:
+            cols.append(real_sh(n[s:e], lw) @ (fd[:, None] * Lp))
+        return torch.stack(cols, -1)  # (n, C, J)
+
+    bands = torch.arange(lmax + 1, device=n.device)
+    if diffuse:
+        bands = torch.cat([bands, torch.zeros(1, dtype=bands.dtype, device=n.device)])
+    var = None if variance is None else variance.to(f64)
+    w, src = noise_weights(b, var)
+    pen = torch.ones(lmax + 1, dtype=f64)  # white prior on Â_l (all O(1) or smaller)
+    sol = solve_wls(design, b, w, bands, rule=rule, noise_known=var is not None,
+                    band_penalty=pen, noise_source=src)
+    # statistics only over the filter bands (kd reported separately)
+    sol_f = LinearSolution(
+        coefficients=sol.coefficients[: lmax + 1],
+        coefficients_unregularised=sol.coefficients_unregularised[: lmax + 1],
+        stderr=sol.stderr[: lmax + 1], stderr_unregularised=sol.stderr_unregularised[: lmax + 1],
+        determined=sol.determined[: lmax + 1], resolution=sol.resolution[: lmax + 1],
+        lam=sol.lam, lam_rel=sol.lam_rel, chi2_reduced=sol.chi2_reduced, dof=sol.dof,
+        rule=sol.rule, noise_source=sol.noise_source, n_samples=sol.n_samples,
+        band=bands[: lmax + 1], band_singular=sol.band_singular)
+    rows, ill = band_statistics(sol_f)
+    eps = noise_level(sol_f)
+    amp = torch.stack([Lp[band_l == l].pow(2).mean(0).sqrt() for l in range(lmax + 1)])
+    rel = (amp / Lp[0].abs().clamp_min(1e-300)).median(-1).values  # (lmax+1,)
+    below = torch.nonzero(rel < eps)
+    pred_l = int(below[0]) if below.numel() else None
+    prediction = {"model": "lighting spectrum", "eps": eps, "first_ill_band": pred_l,
+                  "lstar": float(pred_l) if pred_l is not None else math.inf,
+                  "formula": "first l with sqrt(mean_m L_lm^2)/|L_00| < eps (R&H 2001: BRDF "
+                             "recovery needs lighting energy at that frequency)"}
+    filt = sol.coefficients[: lmax + 1]
+    checks = {"filter_dc_le_1": bool((filt[0] <= 1 + 3 * sol.stderr[0].clamp_max(1e300)).all()),
+              "note": "Â_0 is the directional albedo of the specular lobe at normal exitance: "
+                      "<= 1 for an energy-conserving BRDF"}
+    return BRDFSHFit(lmax=lmax, filter=filt, filter_stderr=sol.stderr[: lmax + 1],
+                     kd=sol.coefficients[-1] if diffuse else None,
+                     kd_stderr=sol.stderr[-1] if diffuse else None,
+                     determined=sol.determined[: lmax + 1], bands=rows,
+                     ill_conditioned_from_l=ill, noise_level=eps, prediction=prediction,
+                     solution=sol, checks=checks)
