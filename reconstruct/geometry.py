@@ -231,10 +231,11 @@ def add_lighting(g: ViewGeometry, light, scene, mesh: Mesh, cast_shadows: bool) 
         dist = np.full((h, w), np.inf)
         dist[m] = dist_h
         g.light_distance = dist
+    if dist_h is not None and np.any(dist_h <= 1e-6 * mesh.extent):
+        raise GeometryError("a point light lies on the mesh surface (1/r² diverges there); check "
+                            "images[].light.position and the mesh units", mesh.source or None)
     if cast_shadows:
         sh = np.zeros((h, w), bool)
-        if dist_h is not None and np.any(dist_h <= 0):
-            raise GeometryError("a point light lies on the mesh surface; move it off the sample")
         sh[m] = shadow_mask(scene, g.position[m], g.geometric_normal[m], wi_h, mesh.extent,
                             light_distance=dist_h)
         g.shadow = sh
