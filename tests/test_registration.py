@@ -71,3 +71,26 @@ def test_registration_wrong_inputs(bunny, tmp_path):
     res = register_mesh_to_scan(bunny, mm)
     assert res.fitness < 0.3 and any("other units" in w for w in res.warnings)
     assert np.all(np.isfinite(res.transformation))
+
+
+def test_register_capture_moves_mesh_into_scan_frame(bunny, tmp_path):
+    import types
+
+    import open3d as o3d
+
+    from brdfcap.reconstruct.registration import register_capture
+
+    truth = _rigid(-35.0, [1.0, 0.2, -0.4], [0.0, 0.03, -0.05])
+    scan = bunny.vertices[::3] @ truth[:3, :3].T + truth[:3, 3]
+    o3d.io.write_point_cloud(str(tmp_path / "scan.ply"),
+                             o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan)))
+    cfg = types.SimpleNamespace(scan=tmp_path / "scan.ply", warnings=[], camera=None,
+                                toml_path=tmp_path / "capture.toml")
+    moved = register_capture(types.SimpleNamespace(config=cfg, views=[]), bunny)
+    expect = bunny.vertices @ truth[:3, :3].T + truth[:3, 3]
+    assert np.sqrt(((moved.vertices - expect) ** 2).sum(1).mean()) < 5e-4
+    rec = moved.info["scan_registration"]
+    # inlier RMSE here is the nearest-neighbour spacing of the sparse scan, not an error
+    assert rec["fitness"] > 0.9 and rec["inlier_rmse"] < 2e-3 and not cfg.warnings
+    # normals move with the mesh
+    assert np.allclose(moved.face_normals, bunny.face_normals @ truth[:3, :3].T)
