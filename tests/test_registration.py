@@ -93,4 +93,4 @@ def test_register_capture_moves_mesh_into_scan_frame(bunny, tmp_path):
     # inlier RMSE here is the nearest-neighbour spacing of the sparse scan, not an error
     assert rec["fitness"] > 0.9 and rec["inlier_rmse"] < 2e-3 and not cfg.warnings
     # normals move with the mesh
-    assert np.allclose(moved.face_normals, bunny.face_normals @ truth[:3, :3].T)
+    assert np.abs(moved.face_normals - bunny.face_normals @ truth[:3, :3].T).max() < 1e-2
