@@ -151,3 +151,19 @@ def test_convexity(bunny):
     dented = mesh_from_arrays(v2, f2)
     assert dented.info["watertight"]
     assert not convexity_test(dented).convex
+
+
+@needs_bunny
+@pytest.mark.parametrize("ext", ["obj", "stl"])
+def test_obj_and_stl_read_like_ply(bunny, tmp_path, ext):
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(bunny.vertices),
+                                  o3d.utility.Vector3iVector(bunny.faces.astype(np.int32)))
+    m.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(tmp_path / f"b.{ext}"), m)
+    other = load_mesh(tmp_path / f"b.{ext}")
+    # STL stores every triangle with its own three vertices: cleaning merges them back
+    assert len(other.faces) == len(bunny.faces)
+    assert len(other.vertices) == len(bunny.vertices)
+    assert other.extent == pytest.approx(bunny.extent, rel=1e-6)
