@@ -62,6 +62,18 @@ def _batch_echo(line: str) -> None:
 @click.option("--lmax", type=click.IntRange(0, 200), default=2, show_default=True,
               help="Highest SH band of the recovered lighting.")
 @click.option("--device", default="cpu", show_default=True, help="torch device for the fit.")
+@click.option("--problem", type=click.Choice(["auto", "lighting", "brdf", "both",
+                                              "aldrian-smith"]),
+              default="auto", show_default=True,
+              help="What to recover (docs/fitting.md): lighting with the BRDF known, the BRDF "
+                   "with the lighting known, both, or Aldrian & Smith's photometric model; auto "
+                   "= Lambertian lighting (environment) or albedo (directional).")
+@click.option("--brdf", type=click.Choice(["lambertian", "phong", "microfacet", "mirror"]),
+              default=None, help="BRDF model (default: capture.toml [material].model).")
+@click.option("--rule", type=click.Choice(["gcv", "discrepancy", "none"]), default="gcv",
+              show_default=True, help="How the Tikhonov weight is chosen (docs/fitting.md).")
+@click.option("--brdf-lmax", type=click.IntRange(0, 200), default=8, show_default=True,
+              help="Highest band of SH-domain BRDF filters (problems brdf/both).")
 @click.option("--jobs", "-j", type=click.IntRange(0, 256), default=1, show_default=True,
               help="Worker processes for a batch (0: one per CPU core).")
 @click.option("--force", is_flag=True,
@@ -73,7 +85,8 @@ def _batch_echo(line: str) -> None:
                    "embed its table and Pareto plot in the reports and the index.")
 @click.option("--debug", "debug_local", is_flag=True, help="Show tracebacks.")
 @click.pass_obj
-def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, jobs: int, force: bool,
+def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, problem: str,
+            brdf: str | None, rule: str, brdf_lmax: int, jobs: int, force: bool,
             progress: bool | None, bench: bool, debug_local: bool) -> None:
     """Run the pipeline on a capture directory, or on every capture under PATH (a batch).
 
@@ -91,7 +104,8 @@ def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, jobs: int,
     if not captures:
         _fail(BrdfcapError("no capture.toml found at or under this directory", path), debug)
     single = len(captures) == 1 and captures[0] == path
-    opts = RunOptions(lmax=lmax, device=device)
+    opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
+                      brdf_lmax=brdf_lmax)
     cli = {"path": str(path), "out": str(out), "lmax": lmax, "device": device, "jobs": jobs,
            "force": force, "progress": progress, "bench": bench, "debug": debug}
     extras, hash_extra = {}, {}

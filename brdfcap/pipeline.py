@@ -52,6 +52,12 @@ class RunOptions:
 
     lmax: int = 2
     device: str = "cpu"
+    #: "auto" (skeleton: Lambertian lighting / directional albedo) or one of
+    #: brdfcap.fit.problems.PROBLEMS: "lighting", "brdf", "both", "aldrian-smith"
+    problem: str = "auto"
+    brdf: str | None = None  # BRDF model override (lambertian/phong/microfacet/mirror)
+    rule: str = "gcv"  # Tikhonov weight rule (brdfcap.fit.solve)
+    brdf_lmax: int = 8  # highest band of SH-domain BRDF filters (problems brdf/both)
 
 
 @dataclass
@@ -142,9 +148,10 @@ def _summary(results: dict, lighting: SHFit | None, albedo_fit: AlbedoFit | None
         e0 = lighting.stderr[0].tolist()
         s.append("L00 (RGB) = " + ", ".join(f"{c:.4g} ± {e:.2g}" for c, e in zip(c0, e0)) + ".")
         s.append("Scale: " + lighting.scale_fixing + ".")
-        s.append("Seed prediction for a Lambertian BRDF: lighting beyond l = 2 is "
-                 "ill-conditioned (odd l > 1 exactly unobservable, even l attenuated as "
-                 "l^-5/2; R&H 2001).")
+        if getattr(lighting.brdf, "model", "lambertian") == "lambertian":
+            s.append("Seed prediction for a Lambertian BRDF: lighting beyond l = 2 is "
+                     "ill-conditioned (odd l > 1 exactly unobservable, even l attenuated "
+                     "as l^-5/2; R&H 2001).")
     if albedo_fit is not None:
         s.append("Lambertian albedo (RGB) = " + ", ".join(
             f"{a:.4g} ± {e:.2g}" for a, e in zip(albedo_fit.albedo.tolist(),
@@ -198,9 +205,15 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
 
     stage("fit")
     t0 = time.perf_counter()
-    lighting, albedo_fit = None, None
+    lighting, albedo_fit, problem_res = None, None, None
     alb_known = None if cap.config.albedo is None else torch.as_tensor(cap.config.albedo)
-    if cap.config.lighting_kind == "environment":
+    if opts.problem != "auto":  # docs/fitting.md: problem dispatch
+        from brdfcap.fit.problems import solve_problem
+
+        problem_res = solve_problem(opts.problem, samples, cap.config, opts)
+        lighting = problem_res.lighting
+        albedo = torch.ones(3, dtype=torch.float64)
+    elif cap.config.lighting_kind == "environment":
         k = (opts.lmax + 1) ** 2
         if len(samples) < k:
             raise FitError(f"{len(samples)} samples cannot determine {k} coefficients per channel "
@@ -208,13 +221,16 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
                            cap.config.toml_path)
         lighting = fit_lighting_lambertian(samples.normal, samples.radiance, opts.lmax,
                                            variance=samples.variance, albedo=alb_known,
-                                           noise_model=cap.config.noise)
+                                           noise_model=cap.config.noise, rule=opts.rule)
         albedo = alb_known if alb_known is not None else torch.ones(3, dtype=torch.float64)
     else:
         albedo_fit = fit_albedo_directional(samples.normal, samples.wi, samples.light_radiance,
                                             samples.radiance, samples.variance)
         albedo = albedo_fit.albedo
-    pred = _predict(samples, lighting, albedo_fit, albedo.to(samples.normal.device))
+    if problem_res is not None:
+        pred = problem_res.prediction.to(samples.normal.device)
+    else:
+        pred = _predict(samples, lighting, albedo_fit, albedo.to(samples.normal.device))
     brdf_meas = None
     if cap.config.geometry_source == "normal_map" and samples.wi is not None:
         from brdfcap.fit.diligent_fit import measure_brdf  # docs/diligent.md
@@ -246,7 +262,9 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         "outputs": {"report": "report.html", "coefficients": "coefficients.csv",
                     "config": "config.json"},
     }
-    if lighting is not None:
+    if problem_res is not None:
+        pass  # filled from the problem's own results below
+    elif lighting is not None:
         results["lighting"] = {
             "lmax": lighting.lmax, "sh": "rh2001-real", "frame": "world",
             "coefficients": lighting.coefficients.tolist(),
@@ -263,11 +281,21 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
             "albedo": albedo.tolist(),
             "albedo_source": "capture.toml [material].albedo" if alb_known is not None
             else "fixed to 1 (scale absorbed into the lighting)"}
-    else:
+    elif albedo_fit is not None:
         results["brdf"]["parameters"] = {"albedo": albedo_fit.albedo.tolist(),
                                          "albedo_stderr": albedo_fit.stderr.tolist(),
                                          "chi2_reduced": albedo_fit.chi2_reduced.tolist(),
                                          "noise_source": albedo_fit.noise_source}
+
+    from brdfcap.fit.problems import FIT_SCHEMA, conditioning_json, lighting_json
+
+    results["fit_schema"] = FIT_SCHEMA  # docs/fitting.md#resultsjson
+    results["fit"]["problem"] = opts.problem
+    if problem_res is not None:
+        results.update(problem_res.results)
+    elif lighting is not None:
+        results["lighting"] = {**lighting_json(lighting), **results["lighting"]}
+        results["conditioning"] = conditioning_json(lighting)
 
     # figures: per-view images of observed / re-rendered
     obs, ren, masks, titles = [], [], [], []
@@ -300,9 +328,16 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         eerr = np.stack([e[band == l].pow(2).mean(0).sqrt().numpy()
                          for l in range(lighting.lmax + 1)])
         filt = lambertian_filter(lighting.lmax).numpy()
+        pred_last = 2  # seed: Lambertian lighting determined up to l = 2 (R&H 2001)
+        if lighting.brdf is not None and lighting.brdf.model != "lambertian":
+            from brdfcap.fit.brdf_models import specular_filter
+
+            filt = specular_filter(lighting.brdf, lighting.lmax).numpy()
+        if lighting.prediction and lighting.prediction.get("first_ill_band") is not None:
+            pred_last = lighting.prediction["first_ill_band"] - 1
         figs["spectrum"] = F.fig_to_data_uri(F.spectrum_figure(
             lighting.bands, energy, eerr, filt / filt[0], lighting.ill_conditioned_from_l,
-            predicted_lstar=2))  # seed: Lambertian lighting determined up to l = 2 (R&H 2001)
+            predicted_lstar=pred_last))
         figs.update(F.lighting_figures(c.numpy(), lighting.ill_conditioned_from_l,
                                        albedo.detach().cpu().tolist()))
     if brdf_meas is not None:
@@ -311,6 +346,8 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         attach_brdf_measurement(results, figs, brdf_meas, geom, out)
     figs.update(F.brdf_figures(results["brdf"]))  # slices and polar lobes
     summary = _summary(results, lighting, albedo_fit)
+    if problem_res is not None:
+        summary += problem_res.summary
     if brdf_meas is not None:
         summary += brdf_summary_lines(brdf_meas, geom, results)
     results["summary"] = summary

@@ -27,10 +27,10 @@ KNOWN_KEYS: dict[str, set[str]] = {
          "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor"},
     "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask", "frame_check"},
     "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},
-    "lighting": {"kind"},
+    "lighting": {"kind", "coefficients"},
     "images": {"file", "world_to_camera", "exposure", "light", "raw", "mask", "correspondences"},
     "noise": {"read", "gain", "relative"},
-    "material": {"model", "albedo"},
+    "material": {"model", "albedo", "ks", "s", "sigma", "f0"},
 }
 
 
@@ -240,8 +240,10 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
         mat = _get(doc, "material", "", toml_path, (dict,))
         _unknown(mat, "material", "material.", warnings)
         model = mat.get("model", "lambertian")
-        if model != "lambertian":
-            raise CaptureError(f"key 'material.model': only 'lambertian' is supported here, "
+        from brdfcap.fit.brdf_models import BRDF_MODELS  # the fit reads the rest from raw
+
+        if model not in BRDF_MODELS:
+            raise CaptureError(f"key 'material.model' must be one of {BRDF_MODELS}, "
                                f"got {model!r}", toml_path)
         if "albedo" in mat:
             albedo = _vec3(mat["albedo"], "material.albedo", toml_path)

@@ -49,6 +49,7 @@ class Scene:
     saturation: float | None
     source: Path
     raw: dict = field(default_factory=dict)
+    brdf: object = None  # brdfcap.fit.brdf_models.BRDFSpec of [material]
 
 
 def builtin_scene_path(name: str = "demo") -> Path:
@@ -96,10 +97,19 @@ def load_scene(path: str | Path) -> Scene:
     elif shape != "sphere":
         raise CaptureError(f"scene key 'geometry.shape' must be sphere/mesh, got {shape!r}", path)
     mat = doc.get("material", {})
-    if mat.get("model", "lambertian") != "lambertian":
-        raise CaptureError("scene key 'material.model': the simulator renders 'lambertian' only "
-                           "for now", path)
+    from brdfcap.fit.brdf_models import BRDF_MODELS, BRDFSpec
+
+    model = mat.get("model", "lambertian")
+    if model not in BRDF_MODELS:
+        raise CaptureError(f"scene key 'material.model' must be one of {BRDF_MODELS}, "
+                           f"got {model!r}", path)
     albedo = np.asarray(mat.get("albedo", [1.0, 1.0, 1.0]), dtype=np.float64)
+    brdf = BRDFSpec(model, kd=albedo, ks=mat.get("ks", [0.0, 0.0, 0.0]),
+                    s=float(mat.get("s", 0.0)), sigma=float(mat.get("sigma", 0.0)),
+                    f0=mat.get("f0", [0.0, 0.0, 0.0]))
+    if (model == "phong" and not brdf.s > 0) or (model == "microfacet" and not brdf.sigma > 0):
+        raise CaptureError(f"scene key 'material': a {model} material needs "
+                           f"{'s > 0' if model == 'phong' else 'sigma > 0'}", path)
     light = doc.get("lighting", {})
     kind = light.get("kind", "environment")
     light_sh, lights = None, []
@@ -144,7 +154,7 @@ def load_scene(path: str | Path) -> Scene:
         exposure=float(doc.get("exposure", 1.0)), noise=noise,
         seed=int(doc.get("noise", {}).get("seed", 0)),
         saturation=None if "saturation" not in doc else float(doc["saturation"]),
-        source=path, raw=doc)
+        source=path, raw=doc, brdf=brdf)
 
 
 def look_at(eye: np.ndarray, target: np.ndarray = np.zeros(3),
@@ -249,7 +259,20 @@ def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | N
             hit = hit & ~g.shadow
     nrm = torch.as_tensor(normal[hit], dtype=torch.float64)
     alb = torch.as_tensor(scene.albedo)
-    if scene.lighting_kind == "environment":
+    spec = scene.brdf
+    if spec is not None and spec.model != "lambertian":  # fit.brdf_models forward models
+        from brdfcap.fit.brdf_models import render_directional, render_sh
+
+        wo_img = -d if scene.shape == "sphere" else g.wo
+        wo = torch.as_tensor(wo_img[hit], dtype=torch.float64)
+        if scene.lighting_kind == "environment":
+            refl = 2.0 * (nrm * wo).sum(-1, keepdim=True) * nrm - wo
+            rad = render_sh(spec, nrm, refl, torch.as_tensor(scene.light_sh))
+        else:
+            wi_np, irr_np, _ = light_at(_scene_light(light), p[hit])
+            rad = render_directional(spec, nrm, wo, torch.as_tensor(wi_np),
+                                     torch.as_tensor(irr_np))
+    elif scene.lighting_kind == "environment":
         rad = lambertian_radiance_sh(nrm, torch.as_tensor(scene.light_sh), alb)
     else:
         wi_np, irr_np, _ = light_at(_scene_light(light), p[hit])
@@ -273,7 +296,7 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     scene = load_scene(scene_path)
     out = Path(out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
-    effects = ["lambertian"]
+    effects = [scene.brdf.model if scene.brdf is not None else "lambertian"]
     if scene.shape == "sphere":
         mesh = uv_sphere(scene.radius, n_theta=256, n_phi=512)
         mesh_name = "sphere.ply"
@@ -347,6 +370,15 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     if scene.noise is not None:
         tables["noise"] = {"read": scene.noise.read, "gain": scene.noise.gain,
                            "relative": scene.noise.relative}
+    spec = scene.brdf
+    mat_raw = scene.raw.get("material", {})
+    if spec is not None and spec.model != "lambertian" and mat_raw.get("known", True):
+        # problem 1 (inverse lighting) needs the BRDF known: write it (docs/fitting.md)
+        mt = {"model": spec.model, "albedo": spec.kd.tolist()}
+        mt.update({k: v for k, v in spec.parameters().items() if k != "kd"})
+        tables["material"] = mt
+    if scene.light_sh is not None and scene.raw.get("lighting", {}).get("known", False):
+        tables["lighting"]["coefficients"] = scene.light_sh.tolist()  # problem 2
     top = {"format": "brdfcap/1", "name": scene.name}
     if scene.saturation is not None:
         top["saturation"] = scene.saturation
@@ -358,6 +390,8 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
              "albedo": scene.albedo.tolist(), "lighting_kind": scene.lighting_kind,
              "shadows": {"cast": cast_shadows, "decision": shadow_note,
                          "shadowed_pixels": n_shadowed}}
+    if spec is not None:
+        truth["brdf"] = {"model": spec.model, "parameters": spec.parameters()}
     if scene.light_sh is not None:
         truth["lighting"] = {"lmax": int(math.isqrt(scene.light_sh.shape[0])) - 1,
                              "sh": "rh2001-real", "frame": "world",
