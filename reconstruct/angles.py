@@ -22,7 +22,7 @@ import torch
 
 __all__ = ["local_frame", "to_local", "from_local", "spherical_angles", "SphericalAngles",
            "RusinkiewiczAngles", "rusinkiewicz_angles", "rusinkiewicz_to_directions",
-           "reflect", "HALF_VECTOR_EPS"]
+           "reflect", "sample_angles", "HALF_VECTOR_EPS"]
 
 #: ``|wi + wo|`` below this (the two directions within ~2e-6 rad of opposite) leaves the half
 #: vector undefined; it is clamped so the angles stay finite (the pair is then reported with
@@ -164,3 +164,18 @@ def rusinkiewicz_to_directions(theta_h: torch.Tensor, phi_h: torch.Tensor,
     h = sph(theta_h, phi_h)
     wo = 2.0 * (wi * h).sum(-1, keepdim=True) * h - wi
     return wi, wo
+
+
+def sample_angles(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> dict:
+    """All table angles of BRDF samples ``(N, 3)`` (e.g. ``Samples.normal/wi/wo``) at once.
+
+    Returns
+    -------
+    dict
+        ``theta_i, theta_o, phi`` (:func:`spherical_angles`) and ``theta_h, phi_h, theta_d,
+        phi_d`` (:func:`rusinkiewicz_angles`), ``(N,)`` radians each.
+    """
+    s = spherical_angles(wi, wo, normal)
+    r = rusinkiewicz_angles(wi, wo, normal)
+    return {"theta_i": s.theta_i, "theta_o": s.theta_o, "phi": s.phi, "theta_h": r.theta_h,
+            "phi_h": r.phi_h, "theta_d": r.theta_d, "phi_d": r.phi_d}

@@ -171,3 +171,18 @@ intensity = [0.2, 0.2, 0.2]""")
     s = build_samples(cap, geom)
     fit = fit_albedo_directional(s.normal, s.wi, s.light_radiance, s.radiance, s.variance)
     assert torch.allclose(fit.albedo, torch.tensor(ALBEDO, dtype=torch.float64), rtol=1e-4)
+
+
+def test_sample_angles_of_bunny_samples(bunny_capture):
+    """Table angles of real samples: finite, in range, consistent with n·ωi and n·ωo."""
+    from brdfcap.reconstruct.angles import sample_angles
+
+    _, cap, _, geom = bunny_capture
+    s = build_samples(cap, geom)
+    a = sample_angles(s.normal, s.wi, s.wo)
+    for v in a.values():
+        assert v.shape == (len(s),) and torch.isfinite(v).all()
+    assert torch.allclose(torch.cos(a["theta_o"]), (s.normal * s.wo).sum(-1), atol=1e-9)
+    assert torch.allclose(torch.cos(a["theta_i"]), (s.normal * s.wi).sum(-1), atol=1e-9)
+    assert (a["theta_o"] < np.arccos(0.1)).all()  # grazing pixels were dropped
+    assert ((a["phi"] > -np.pi) & (a["phi"] <= np.pi)).all()
