@@ -1,0 +1,432 @@
+"""Problem 3: lighting and BRDF both unknown — bilinear factorisation by alternating LS.
+
+Model (R&H SIGGRAPH 2001 §6 "factorization"; seed): per channel ``c``
+
+.. math:: B_c = k_{d,c} \\sum_{lm} \\frac{\\hat A_l}{\\pi} L_{lm,c} Y_{lm}(n)
+          + \\sum_{lm} f_l L_{lm,c} Y_{lm}(r)
+
+with unknown lighting ``L`` (``(lmax+1)²`` per channel), diffuse albedo ``kd`` (per channel) and
+a radially symmetric specular filter ``f_l = Λ_l ρ̂_l`` *shared by the channels* (a neutral
+specular — dielectrics). ``B`` is linear in ``L`` for fixed ``(kd, f)`` and linear in
+``(kd, f)`` for fixed ``L``: each half-step is a convex weighted least-squares problem, solved in
+closed form from weighted Gram matrices precomputed once (the ALS iterations cost ``O(K³)``,
+not ``O(N K²)``); the final half-steps go through :func:`brdfcap.fit.solve.solve_wls` for the
+regularised estimates, standard errors and band conditioning. Those uncertainties are
+*conditional* on the other factor (they ignore its uncertainty) — stated in ``results.json``.
+
+Ambiguities (R&H 2001 §6; Aldrian & Smith's "red light or red object") — reported, not hidden:
+
+* global scale: ``(αL, kd/α, f/α)`` gives the same images; fixed explicitly by ``f_0 = 1``
+  (the specular lobe's DC gain absorbed into the lighting);
+* colour: per-channel scales ``(α_c L_c, kd_c/α_c)`` are only pinned because ``f`` is shared
+  by the channels (the highlights show the light's colour); when the fitted specular term is
+  not significant the red-light/red-object ambiguity is unresolved and the report says so;
+* per band: through the specular term only the products ``f_l L_lm`` are seen (R&H 2001:
+  a radially symmetric BRDF and the lighting cannot be factored band by band); the diffuse
+  term pins ``L_l`` where ``Â_l ≠ 0`` (l = 1, 2, even l weakly), so odd bands ≥ 3 and the split
+  of the constant term between diffuse and specular (hence ``kd`` vs ``f_1, f_2``) are exact
+  ambiguities. They are found as null directions of the joint Gauss-Newton normal matrix,
+  listed in ``ambiguities`` and their coefficients flagged not determined; what *is* determined
+  are the gauge-invariant products ``f_l L_lm`` and ``kd Â_l L_lm`` (checked in the tests).
+* frequencies: lighting bands beyond the specular filter's ``l*`` are not determined.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from brdfcap.errors import FitError
+
+from .brdf_models import diffuse_filter, phong_sh_filter
+from .conditioning import band_statistics, noise_level, predicted_lstar
+from .lighting import SHFit
+from .sh import band_of_index, real_sh
+from .solve import LinearSolution, noise_weights, solve_wls
+
+__all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL"]
+
+#: Eigenvalues of the Jacobi-scaled joint normal matrix below this fraction of the largest are
+#: exact ambiguities (null directions); float64 normal equations resolve ~1e-16, the structural
+#: ambiguities of the model sit at that level, genuine but weak information far above it.
+NULL_RTOL = 1e-10
+
+
+@dataclass
+class BilinearFit:
+    """Lighting, diffuse albedo and shared specular filter from the bilinear factorisation."""
+
+    lighting: SHFit
+    kd: torch.Tensor  # (C,)
+    kd_stderr: torch.Tensor
+    filter: torch.Tensor  # (brdf_lmax+1,) f_l, f_0 = 1
+    filter_stderr: torch.Tensor
+    filter_bands: list[dict]
+    filter_ill_conditioned_from_l: int | None
+    iterations: int
+    converged: bool
+    history: list[float]
+    prediction: torch.Tensor  # (N, C)
+    ambiguities: list[dict] = field(default_factory=list)
+
+    def to_results(self) -> dict:
+        """Keys for ``results.json``."""
+        from .problems import conditioning_json, lighting_json
+
+        def fin(v):
+            return [x if math.isfinite(x) else None for x in v.tolist()]
+        cond = conditioning_json(self.lighting)
+        cond["brdf"] = {"measured": self.filter_ill_conditioned_from_l, "predicted": None}
+        return {"lighting": lighting_json(self.lighting),
+                "brdf": {"model": "diffuse+sh-radial-specular",
+                         "parameters": {"kd": self.kd.tolist(), "filter": self.filter.tolist()},
+                         "stderr": {"kd": fin(self.kd_stderr), "filter": fin(self.filter_stderr)},
+                         "bands": self.filter_bands,
+                         "ill_conditioned_from_l": self.filter_ill_conditioned_from_l,
+                         "source": "bilinear factorisation (alternating least squares)",
+                         "uncertainty_note": "standard errors are conditional on the other "
+                                             "factor (lighting fixed for the BRDF and vice "
+                                             "versa)"},
+                "factorisation": {"iterations": self.iterations, "converged": self.converged,
+                                  "chi2_history": self.history[-10:]},
+                "ambiguities": self.ambiguities, "conditioning": cond}
+
+    def summary(self) -> list[str]:
+        """Report lines."""
+        s = [f"Problem 3 (lighting and BRDF unknown): bilinear factorisation, "
+             f"{self.iterations} alternating steps ({'converged' if self.converged else 'NOT converged'}); "
+             f"lighting ill-conditioned from l = {self.lighting.ill_conditioned_from_l}, "
+             f"specular filter from l = {self.filter_ill_conditioned_from_l}."]
+        s += ["Ambiguity: " + a["name"] + " — " + a["resolution"] for a in self.ambiguities]
+        return s
+
+
+def _lstsq(g: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Minimum-norm solution of ``g x = r`` (symmetric PSD ``g``), eigenvalues < 1e-12 max cut."""
+    ev, u = torch.linalg.eigh(0.5 * (g + g.T))
+    keep = ev > 1e-12 * ev.max().clamp_min(1e-300)
+    return u[:, keep] @ ((u[:, keep].T @ r) / ev[keep])
+
+
+def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
+                 lmax: int, brdf_lmax: int = 8, variance: torch.Tensor | None = None,
+                 rule: str = "gcv", model: str = "phong", s0: float = 32.0,
+                 max_iter: int = 50, tol: float = 1e-6) -> BilinearFit:
+    """Recover lighting ``L``, albedo ``kd`` and specular filter ``f_l`` jointly (module doc).
+
+    Parameters
+    ----------
+    normal, reflected : torch.Tensor
+        ``(N, 3)`` unit normals and reflected view directions.
+    radiance : torch.Tensor
+        ``(N, C)``.
+    lmax, brdf_lmax : int
+        Highest lighting band; highest band of the specular filter.
+    model : str
+        Starting filter: ``"phong"`` (exponent ``s0``) — the only prior information used.
+    max_iter, tol : int, float
+        ALS stops when the relative decrease of the weighted RSS falls below ``tol``; then
+        Levenberg-Marquardt on all unknowns (Gauss-Newton normal matrix assembled from the
+        same Grams) finishes the convergence.
+
+    Returns
+    -------
+    BilinearFit
+    """
+    f64 = torch.float64
+    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
+    r = torch.nn.functional.normalize(reflected.to(f64), dim=-1)
+    b = radiance.to(f64)
+    ok = torch.isfinite(n).all(-1) & torch.isfinite(r).all(-1)
+    n = torch.where(ok[:, None], n, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
+    r = torch.where(ok[:, None], r, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
+    b = torch.where(ok[:, None], b, torch.full_like(b, math.nan))
+    var = None if variance is None else variance.to(f64)
+    w, src = noise_weights(b, var)
+    w = torch.where(torch.isfinite(b), w, torch.zeros_like(w))
+    b0 = torch.nan_to_num(b)
+    nch = b.shape[1]
+    lw = max(lmax, brdf_lmax)
+    k = (lmax + 1) ** 2
+    band = band_of_index(lmax)
+    if int((w > 0).sum(0).min()) < k + brdf_lmax + 2:
+        raise FitError("too few samples for the bilinear factorisation at this lmax")
+    yn = real_sh(n, lmax) * diffuse_filter(lmax)[band]  # (N, K), diffuse filter folded in
+    yr = real_sh(r, lmax)  # (N, K)
+    # weighted Grams per channel (precomputed once)
+    gnn = torch.stack([(yn * w[:, c:c + 1]).T @ yn for c in range(nch)])
+    gnr = torch.stack([(yn * w[:, c:c + 1]).T @ yr for c in range(nch)])
+    grr = torch.stack([(yr * w[:, c:c + 1]).T @ yr for c in range(nch)])
+    rn = torch.stack([yn.T @ (w[:, c] * b0[:, c]) for c in range(nch)])
+    rr = torch.stack([yr.T @ (w[:, c] * b0[:, c]) for c in range(nch)])
+    bwb = (w * b0 * b0).sum(0)
+    # band-sum operator S (K, lb+1): f_l acts on coefficients of band l (l <= min(lmax, lb))
+    lb = brdf_lmax
+    S = torch.zeros(k, lb + 1, dtype=f64)
+    for l in range(min(lmax, lb) + 1):
+        S[band == l, l] = 1.0
+    f = phong_sh_filter(s0, lb) if model == "phong" else torch.exp(
+        -(0.2 * torch.arange(lb + 1, dtype=f64)) ** 2)
+    f = f / f[0]
+    kd = torch.full((nch,), 0.5, dtype=f64)
+    L = torch.zeros(k, nch, dtype=f64)
+    history: list[float] = []
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        fk = S @ f  # (K,) filter per coefficient
+        # step A: lighting per channel, design a = kd yn + yr * fk
+        for c in range(nch):
+            g = (kd[c] ** 2 * gnn[c] + kd[c] * (gnr[c] * fk[None, :] + gnr[c].T * fk[:, None])
+                 + grr[c] * fk[:, None] * fk[None, :])
+            rhs = kd[c] * rn[c] + fk * rr[c]
+            L[:, c] = _lstsq(g, rhs)
+        # step B: (f_1.., kd_c) jointly over channels, f_0 = 1 fixed (scale)
+        p = lb + nch  # unknowns: f_0..f_lb (f_0 then moved to the rhs), kd_0..kd_C-1
+        G = torch.zeros(p, p, dtype=f64)
+        R = torch.zeros(p, dtype=f64)
+        for c in range(nch):
+            Lc = L[:, c]
+            Ms = S * Lc[:, None]  # (K, lb+1): column l = L_l on band l
+            gff = Ms.T @ grr[c] @ Ms  # (lb+1, lb+1)
+            gfd = Ms.T @ gnr[c].T @ Lc  # (lb+1,)
+            gdd = Lc @ gnn[c] @ Lc
+            rf = Ms.T @ rr[c]
+            rd = Lc @ rn[c]
+            # move f_0 (index 0) to the rhs
+            G[:lb, :lb] += gff[1:, 1:]
+            R[:lb] += rf[1:] - gff[1:, 0]
+            G[:lb, lb + c] += gfd[1:]
+            G[lb + c, :lb] += gfd[1:]
+            G[lb + c, lb + c] += gdd
+            R[lb + c] += rd - gfd[0]
+        x = _lstsq(G, R)
+        f = torch.cat([torch.ones(1, dtype=f64), x[:lb]])
+        kd = x[lb:]
+        # weighted RSS from the Grams
+        fk = S @ f
+        rss = 0.0
+        for c in range(nch):
+            g = (kd[c] ** 2 * gnn[c] + kd[c] * (gnr[c] * fk[None, :] + gnr[c].T * fk[:, None])
+                 + grr[c] * fk[:, None] * fk[None, :])
+            rhs = kd[c] * rn[c] + fk * rr[c]
+            rss += float(bwb[c] - 2 * L[:, c] @ rhs + L[:, c] @ g @ L[:, c])
+        history.append(rss)
+        if len(history) > 1 and abs(history[-2] - rss) <= tol * max(abs(history[-2]), 1e-300):
+            converged = True
+            break
+        if rss <= 1e-28 * float(bwb.sum()):
+            converged = True
+            break
+
+    # Gauss-Newton (Levenberg-Marquardt) on all unknowns from the same Grams: ALS is
+    # slow in the bilinear "swamps"; GN converges quadratically near the solution.
+    def _rss(L_, kd_, f_):
+        fk_ = S @ f_
+        tot = 0.0
+        for c in range(nch):
+            g = (kd_[c] ** 2 * gnn[c] + kd_[c] * (gnr[c] * fk_[None, :] + gnr[c].T * fk_[:, None])
+                 + grr[c] * fk_[:, None] * fk_[None, :])
+            rhs = kd_[c] * rn[c] + fk_ * rr[c]
+            tot += float(bwb[c] - 2 * L_[:, c] @ rhs + L_[:, c] @ g @ L_[:, c])
+        return tot
+
+    def _hessian(L, kd, f):
+        fk = S @ f
+        H = torch.zeros(np_, np_, dtype=f64)
+        gvec = torch.zeros(np_, dtype=f64)
+        off = nch * k
+        for c in range(nch):
+            Lc = L[:, c]
+            ga = (kd[c] ** 2 * gnn[c] + kd[c] * (gnr[c] * fk[None, :] + gnr[c].T * fk[:, None])
+                  + grr[c] * fk[:, None] * fk[None, :])
+            sl = slice(c * k, (c + 1) * k)
+            H[sl, sl] = ga
+            # prediction projections: yn^T W pred, yr^T W pred
+            pn = kd[c] * gnn[c] @ Lc + gnr[c] @ (fk * Lc)
+            pr = kd[c] * gnr[c].T @ Lc + grr[c] @ (fk * Lc)
+            en, er = rn[c] - pn, rr[c] - pr  # yn^T W res, yr^T W res
+            gvec[sl] = kd[c] * en + fk * er
+            Ms = (S * Lc[:, None])[:, 1:]  # d pred / d f_1..lb = yr Ms
+            # cross terms a_c^T W yr Ms and a_c^T W yn Lc
+            a_yr = kd[c] * gnr[c] + fk[:, None] * grr[c]  # a^T W yr  (K, K)
+            a_yn = kd[c] * gnn[c] + fk[:, None] * gnr[c].T  # a^T W yn
+            H[sl, off:off + lb] = a_yr @ Ms
+            H[sl, off + lb + c] = a_yn @ Lc
+            H[off:off + lb, off:off + lb] += Ms.T @ grr[c] @ Ms
+            H[off:off + lb, off + lb + c] += Ms.T @ gnr[c].T @ Lc
+            H[off + lb + c, off + lb + c] += Lc @ gnn[c] @ Lc
+            gvec[off:off + lb] += Ms.T @ er
+            gvec[off + lb + c] += Lc @ en
+            # Hessian term of the bilinear coupling (d2 pred / dL dtheta) is left out: GN
+        H = torch.triu(H) + torch.triu(H, 1).T
+        return H, gvec
+
+    mu = 1e-9
+    rss = _rss(L, kd, f)
+    np_ = nch * k + lb + nch
+    off = nch * k
+    for _ in range(60):
+        H, gvec = _hessian(L, kd, f)
+        improved = False
+        for _try in range(8):
+            Hd = H + mu * torch.diag(torch.diagonal(H).clamp_min(1e-300))
+            d = _lstsq(Hd, gvec)
+            L2 = L + d[:off].reshape(nch, k).T
+            f2 = torch.cat([torch.ones(1, dtype=f64), f[1:] + d[off:off + lb]])
+            kd2 = kd + d[off + lb:]
+            r2 = _rss(L2, kd2, f2)
+            if r2 <= rss:
+                L, f, kd = L2, f2, kd2
+                done = abs(rss - r2) <= 1e-14 * max(rss, 1e-300) or r2 <= 1e-26 * float(bwb.sum())
+                rss = r2
+                mu = max(mu / 10, 1e-15)
+                improved = True
+                break
+            mu *= 10
+        history.append(rss)
+        it += 1
+        if not improved or done:
+            converged = True
+            break
+
+    # ambiguities: null directions of the joint Gauss-Newton normal matrix (Jacobi-scaled)
+    H, _ = _hessian(L, kd, f)
+    dsc = torch.diagonal(H).clamp_min(1e-300).rsqrt()
+    ev, u = torch.linalg.eigh(H * dsc[:, None] * dsc[None, :])
+    null = ev < NULL_RTOL * ev.max().clamp_min(1e-300)
+    labels = ([("lighting", int(band[i])) for c in range(nch) for i in range(k)]
+              + [("filter", l) for l in range(1, lb + 1)] + [("kd", c) for c in range(nch)])
+    null_dirs = []
+    for j in torch.nonzero(null).flatten().tolist():
+        wts: dict = {}
+        for i, lab in enumerate(labels):
+            wts[lab] = wts.get(lab, 0.0) + float(u[i, j] ** 2)
+        null_dirs.append(sorted({lab for lab, v in wts.items() if v > 0.02}))
+    amb_l = sorted({l for d in null_dirs for (kind, l) in d if kind == "lighting"})
+    amb_f = sorted({l for d in null_dirs for (kind, l) in d if kind == "filter"})
+    amb_kd = any(kind == "kd" for d in null_dirs for (kind, _) in d)
+    # joint (not conditional) covariance of all unknowns: sigma^2 H^+
+    keep = ~null
+    hinv = (u[:, keep] / ev[keep]) @ u[:, keep].T * dsc[:, None] * dsc[None, :]
+    nobs = int((w > 0).sum())
+    chi2_joint = rss / max(nobs - int(keep.sum()), 1)
+    sig2 = max(chi2_joint, 1.0) if var is not None else chi2_joint
+    se_joint = (torch.diagonal(hinv).clamp_min(0) * sig2).sqrt()
+
+    # final half-steps with the full solver: lighting given (kd, f) ...
+    fk = S @ f
+
+    def design_l(s_: int, e_: int) -> torch.Tensor:
+        return yn[s_:e_, None, :] * kd[None, :, None] + (yr[s_:e_] * fk)[:, None, :]
+
+    sol_l = solve_wls(design_l, b, w, band, rule=rule, noise_known=var is not None,
+                      noise_source=src)
+    # uncertainty = joint; coefficients in an exact ambiguity = not determined
+    se_l = se_joint[: nch * k].reshape(nch, k).T
+    amb_mask = torch.zeros(k, dtype=torch.bool)
+    for l in amb_l:
+        amb_mask |= band == l
+    sol_l.determined = sol_l.determined & ~amb_mask[:, None]
+    sol_l.stderr_unregularised = torch.where(sol_l.determined, se_l,
+                                             torch.full_like(se_l, math.inf))
+    sol_l.stderr = torch.where(sol_l.determined, torch.maximum(sol_l.stderr, 0 * se_l),
+                               torch.full_like(se_l, math.inf))
+    rows, ill = band_statistics(sol_l)
+    eps = noise_level(sol_l)
+    lt = SHFit(lmax=lmax, coefficients=sol_l.coefficients, stderr=sol_l.stderr,
+               determined=sol_l.determined, chi2_reduced=sol_l.chi2_reduced,
+               noise_source=src, bands=rows, ill_conditioned_from_l=ill,
+               scale_fixing="global scale fixed by the specular filter's DC gain f_0 = 1 "
+                            "(specular albedo absorbed into the lighting)",
+               n_samples=sol_l.n_samples)
+    lt.stderr_unregularised = sol_l.stderr_unregularised
+    lt.noise_level = eps
+    lt.regularization = {"rule": sol_l.rule, "lambda_rel": sol_l.lam_rel.tolist()}
+    lt.solution = sol_l
+    lt.prediction = {"model": "measured specular filter", "eps": eps,
+                     "first_ill_band": next((l for l in range(lb + 1) if abs(float(f[l])) < eps),
+                                            None), "lstar": None,
+                     "formula": "first l with |f_l| < eps (R&H 2001: Λ_l ρ̂_l < ε)"}
+    L = sol_l.coefficients
+    # ... and the BRDF (f_1.., kd) given the lighting, stacked over channels as one channel
+    ms = [(yr * L[:, c]) @ S for c in range(nch)]  # (N, lb+1) per channel
+    dn = [yn @ L[:, c] for c in range(nch)]
+    nn = n.shape[0]
+
+    def design_b(s_: int, e_: int) -> torch.Tensor:
+        rows_ = []
+        for c in range(nch):
+            blk = torch.zeros(e_ - s_, lb + nch, dtype=f64)
+            blk[:, :lb] = ms[c][s_:e_, 1:]
+            blk[:, lb + c] = dn[c][s_:e_]
+            rows_.append(blk)
+        return torch.cat(rows_)
+
+    def design_b_rows(s_: int, e_: int) -> torch.Tensor:  # rows of the stacked (N*C) system
+        full = torch.cat([design_b(0, nn)])
+        return full[s_:e_]
+
+    full_b = design_b(0, nn)
+    b_st = torch.cat([b[:, c] - ms[c][:, 0] for c in range(nch)])[:, None]
+    w_st = torch.cat([w[:, c] for c in range(nch)])[:, None]
+    bands_b = torch.cat([torch.arange(1, lb + 1), torch.zeros(nch, dtype=torch.long)])
+    sol_b = solve_wls(full_b, b_st, w_st, bands_b, rule=rule, noise_known=var is not None,
+                      band_penalty=torch.ones(lb + 1, dtype=f64), noise_source=src)
+    f = torch.cat([torch.ones(1, dtype=f64), sol_b.coefficients[:lb, 0]])
+    f_se = torch.cat([torch.zeros(1, dtype=f64), se_joint[nch * k: nch * k + lb]])
+    kd = sol_b.coefficients[lb:, 0]
+    kd_se = se_joint[nch * k + lb:]
+    for l in amb_f:
+        f_se[l] = math.inf
+        sol_b.determined[l - 1] = False
+    if amb_kd:
+        kd_se = torch.full_like(kd_se, math.inf)
+    # band statistics of the filter: one coefficient per band, reference f_0 = 1
+    fsol = LinearSolution(
+        coefficients=torch.cat([torch.ones(1, 1, dtype=f64), sol_b.coefficients[:lb]]),
+        coefficients_unregularised=torch.cat([torch.ones(1, 1, dtype=f64),
+                                              sol_b.coefficients_unregularised[:lb]]),
+        stderr=f_se[:, None], stderr_unregularised=f_se[:, None],
+        determined=torch.cat([torch.ones(1, 1, dtype=torch.bool), sol_b.determined[:lb]]),
+        resolution=torch.cat([torch.ones(1, 1, dtype=f64), sol_b.resolution[:lb]]),
+        lam=sol_b.lam, lam_rel=sol_b.lam_rel, chi2_reduced=sol_b.chi2_reduced, dof=sol_b.dof,
+        rule=sol_b.rule, noise_source=src, n_samples=sol_b.n_samples,
+        band=torch.arange(lb + 1),
+        band_singular=[torch.ones(1, 1, dtype=f64)] + sol_b.band_singular[1:lb + 1])
+    f_rows, f_ill = band_statistics(fsol, reference=torch.ones(1, dtype=f64))
+    fk = S @ f
+    pred = torch.stack([yn @ L[:, c] * kd[c] + (yr * fk) @ L[:, c] for c in range(nch)], -1)
+    spec_part = torch.stack([(yr * fk) @ L[:, c] - float(L[0, c] * fk[0]) * yr[:, 0]
+                             for c in range(nch)], -1)  # non-constant specular signal
+    spec_frac = float(spec_part.norm() / pred.norm().clamp_min(1e-300))
+    amb = [
+        {"name": "global scale",
+         "resolution": "fixed explicitly: specular filter f_0 = 1 (lighting carries the "
+                       "specular albedo; kd is relative to it)"},
+        {"name": "colour (red light vs red object)",
+         "resolution": ("resolved through the neutral (channel-shared) specular term: the "
+                        "highlights show the light's colour" if spec_frac > 1e-3 else
+                        "NOT resolved: the specular term is not significant, so per-channel "
+                        "scales of lighting and albedo trade off; lighting colour assumed")},
+        {"name": "per-band lighting/BRDF products (R&H 2001: only f_l L_lm is seen through "
+                 "the specular term)",
+         "resolution": (f"exact null directions of the joint problem: {len(null_dirs)}; "
+                        f"lighting bands {amb_l}, filter bands {amb_f}"
+                        + (", diffuse albedo (the DC term cannot split into diffuse and "
+                           "specular)" if amb_kd else "")
+                        + ": gauge fixed by the minimum-norm step from the starting filter; "
+                          "these coefficients are flagged not determined"
+                        if null_dirs else "none found (joint normal matrix full rank)"),
+         "null_directions": [[f"{kind}:{l}" for kind, l in d] for d in null_dirs]},
+        {"name": "unobserved frequencies",
+         "resolution": f"lighting bands from l = {ill} on are not determined by the data "
+                       f"(flagged per coefficient)" if ill is not None else
+                       "none within lmax"},
+    ]
+    return BilinearFit(lighting=lt, kd=kd, kd_stderr=kd_se, filter=f, filter_stderr=f_se,
+                       filter_bands=f_rows, filter_ill_conditioned_from_l=f_ill,
+                       iterations=it, converged=converged, history=history, prediction=pred,
+                       ambiguities=amb)
