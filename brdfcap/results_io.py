@@ -59,8 +59,8 @@ def _num(v):
 def coefficient_rows(results: dict) -> list[dict]:
     """Rows of ``coefficients.csv`` from a results record (lighting SH, then BRDF parameters).
 
-    Lighting rows carry ``index = l(l+1)+m``; scalar-per-channel BRDF parameters (albedo, ...)
-    leave ``index/l/m`` empty; an unknown standard error is empty, a non-determined coefficient
+    Lighting rows carry ``index = l(l+1)+m``; per-channel BRDF parameters (albedo, ``kd``, ...)
+    leave ``index/l/m`` empty, scalar ones (a Phong exponent) also ``channel``; an unknown standard error is empty, a non-determined coefficient
     has ``stderr = inf`` and ``determined = false``.
     """
     rows: list[dict] = []
@@ -78,7 +78,15 @@ def coefficient_rows(results: dict) -> list[dict]:
                              "determined": d})
     params = (results.get("brdf") or {}).get("parameters") or {}
     for name, val in params.items():
-        if name.endswith("_stderr") or not isinstance(val, list):
+        if name.endswith("_stderr"):
+            continue
+        if isinstance(val, (int, float)) and not isinstance(val, bool):  # e.g. Phong exponent
+            err = params.get(f"{name}_stderr")
+            rows.append({"quantity": name, "index": None, "l": None, "m": None, "channel": "",
+                         "value": val, "stderr": err if isinstance(err, (int, float)) else None,
+                         "determined": None})
+            continue
+        if not isinstance(val, list):
             continue
         if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in val):
             continue

@@ -78,6 +78,12 @@ def test_csv_marks_undetermined_coefficients_inf():
     rows = coefficient_rows(res)
     assert rows[1]["stderr"] == math.inf and rows[1]["determined"] is False
     assert "inf,false" in coefficients_csv(res)
+    res["brdf"]["parameters"] = {"kd": [0.5, 0.6, 0.7], "s": 20.0, "s_stderr": 0.5,
+                                 "model_note": "text is not a coefficient"}
+    rows = [r for r in coefficient_rows(res) if r["quantity"] != "lighting"]
+    assert [(r["quantity"], r["channel"]) for r in rows] == [("kd", "R"), ("kd", "G"),
+                                                             ("kd", "B"), ("s", "")]
+    assert rows[-1]["stderr"] == 0.5
 
 
 def test_report_has_every_section_and_no_external_resources(run_out):
