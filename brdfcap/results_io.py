@@ -60,8 +60,9 @@ def coefficient_rows(results: dict) -> list[dict]:
     """Rows of ``coefficients.csv`` from a results record (lighting SH, then BRDF parameters).
 
     Lighting rows carry ``index = l(l+1)+m``; per-channel BRDF parameters (albedo, ``kd``, ...)
-    leave ``index/l/m`` empty, scalar ones (a Phong exponent) also ``channel``; an unknown standard error is empty, a non-determined coefficient
-    has ``stderr = inf`` and ``determined = false``.
+    leave ``index/l/m`` empty, scalar ones (a Phong exponent) also ``channel``; an unknown
+    standard error is empty, a non-determined coefficient has ``stderr = inf`` and
+    ``determined = false``.
     """
     rows: list[dict] = []
     lt = results.get("lighting")
