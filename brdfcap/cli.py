@@ -106,8 +106,10 @@ def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, problem: s
     single = len(captures) == 1 and captures[0] == path
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
                       brdf_lmax=brdf_lmax)
-    cli = {"path": str(path), "out": str(out), "lmax": lmax, "device": device, "jobs": jobs,
-           "force": force, "progress": progress, "bench": bench, "debug": debug}
+    # every option of this command with its resolved value (defaults included), for config.json
+    cli = {k: (str(v) if isinstance(v, Path) else v)
+           for k, v in click.get_current_context().params.items()}
+    cli["debug"] = debug
     extras, hash_extra = {}, {}
     if bench:
         from brdfcap.cmd_bench import bench_for_report
