@@ -1,9 +1,10 @@
-"""Problem 4: Aldrian & Smith's multilinear photometric model (seed ``001``; Aldrian & Smith,
-"Inverse rendering with a morphable model: a multilinear approach", BMVC 2011).
+r"""Problem 4: Aldrian & Smith's multilinear photometric model (seed ``001``).
+
+Aldrian & Smith, "Inverse rendering with a morphable model: a multilinear approach", BMVC 2011.
 
 Per sample (vertex) ``k`` and colour channel ``c``:
 
-.. math:: I_k = M\\,[(U_k l) \\circ (T_k b + \\bar t_k) + S_k x] + o
+.. math:: I_k = M\,[(U_k l) \circ (T_k b + \bar t_k) + S_k x] + o
 
 * ``M = diag(g) (c_t I + (1 − c_t) 1 w^T)``, ``o``: the camera's colour transform — gains ``g``,
   contrast ``c_t`` (mixing toward luminance with weights ``w`` = Rec. 709 luma), offset ``o`` —

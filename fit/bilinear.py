@@ -1,9 +1,9 @@
-"""Problem 3: lighting and BRDF both unknown — bilinear factorisation by alternating LS.
+r"""Problem 3: lighting and BRDF both unknown — bilinear factorisation by alternating LS.
 
 Model (R&H SIGGRAPH 2001 §6 "factorization"; seed): per channel ``c``
 
-.. math:: B_c = k_{d,c} \\sum_{lm} \\frac{\\hat A_l}{\\pi} L_{lm,c} Y_{lm}(n)
-          + \\sum_{lm} f_l L_{lm,c} Y_{lm}(r)
+.. math:: B_c = k_{d,c} \sum_{lm} \frac{\hat A_l}{\pi} L_{lm,c} Y_{lm}(n)
+          + \sum_{lm} f_l L_{lm,c} Y_{lm}(r)
 
 with unknown lighting ``L`` (``(lmax+1)²`` per channel), diffuse albedo ``kd`` (per channel) and
 a radially symmetric specular filter ``f_l = Λ_l ρ̂_l`` *shared by the channels* (a neutral
@@ -41,7 +41,7 @@ import torch
 from brdfcap.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
-from .conditioning import band_statistics, noise_level, predicted_lstar
+from .conditioning import band_statistics, noise_level
 from .lighting import SHFit
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, noise_weights, solve_wls
@@ -96,7 +96,8 @@ class BilinearFit:
     def summary(self) -> list[str]:
         """Report lines."""
         s = [f"Problem 3 (lighting and BRDF unknown): bilinear factorisation, "
-             f"{self.iterations} alternating steps ({'converged' if self.converged else 'NOT converged'}); "
+             f"{self.iterations} steps ("
+             f"{'converged' if self.converged else 'NOT converged'}); "
              f"lighting ill-conditioned from l = {self.lighting.ill_conditioned_from_l}, "
              f"specular filter from l = {self.filter_ill_conditioned_from_l}."]
         s += ["Ambiguity: " + a["name"] + " — " + a["resolution"] for a in self.ambiguities]
@@ -148,7 +149,6 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     w = torch.where(torch.isfinite(b), w, torch.zeros_like(w))
     b0 = torch.nan_to_num(b)
     nch = b.shape[1]
-    lw = max(lmax, brdf_lmax)
     k = (lmax + 1) ** 2
     band = band_of_index(lmax)
     if int((w > 0).sum(0).min()) < k + brdf_lmax + 2:

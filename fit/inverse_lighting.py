@@ -1,10 +1,10 @@
-"""Problem 1: inverse lighting with a known BRDF, ``B_lm = Λ_l ρ̂_l L_lm`` (R&H 2001).
+r"""Problem 1: inverse lighting with a known BRDF, ``B_lm = Λ_l ρ̂_l L_lm`` (R&H 2001).
 
 For a radially symmetric BRDF (Lambertian about ``n``; Phong, microfacet-approximation and
 mirror about the reflected view direction ``r``) the reflected radiance of every sample is
 
-.. math:: B_c = k_{d,c} \\sum_{lm} \\frac{\\hat A_l}{\\pi} L_{lm,c} Y_{lm}(n)
-          + k_{s,c} \\sum_{lm} \\hat A^s_l L_{lm,c} Y_{lm}(r)
+.. math:: B_c = k_{d,c} \sum_{lm} \frac{\hat A_l}{\pi} L_{lm,c} Y_{lm}(n)
+          + k_{s,c} \sum_{lm} \hat A^s_l L_{lm,c} Y_{lm}(r)
 
 (Ramamoorthi & Hanrahan, SIGGRAPH 2001 signal-processing framework, eqs. 7-8 and 18-20; seed
 eqs. 1-6), linear in the lighting ``L_lm``: one weighted least-squares problem per channel,

@@ -16,7 +16,7 @@ import torch
 from brdfcap.errors import FitError
 
 from .brdf_models import BRDF_MODELS, BRDFSpec, render_directional, render_sh
-from .conditioning import ILL_CONDITIONING_DEFINITION, predicted_lstar
+from .conditioning import ILL_CONDITIONING_DEFINITION
 from .lighting import SHFit
 
 __all__ = ["PROBLEMS", "FIT_SCHEMA", "ProblemResult", "solve_problem", "brdf_from_material",
@@ -60,7 +60,7 @@ def brdf_from_material(material: dict | None, model: str | None = None) -> BRDFS
 
 
 def lighting_json(fit: SHFit) -> dict:
-    """The ``lighting`` block of ``results.json`` (skeleton keys + conditioning extras)."""
+    """Return the ``lighting`` block of ``results.json`` (skeleton keys + extras)."""
     out = {"lmax": fit.lmax, "sh": "rh2001-real", "frame": "world",
            "coefficients": fit.coefficients.tolist(), "stderr": _fin_list(fit.stderr),
            "determined": fit.determined.tolist(),
@@ -122,7 +122,7 @@ def problem_lighting(samples, cfg, opts) -> ProblemResult:
 
 
 def problem_brdf(samples, cfg, opts) -> ProblemResult:
-    """Problem 2: inverse BRDF with known lighting (distant lights, or SH ``lighting.coefficients``)."""
+    """Problem 2: inverse BRDF with known lighting (distant lights or SH coefficients)."""
     if cfg.lighting_kind == "directional" or samples.wi is not None:
         from .parametric import fit_brdf_parametric
 

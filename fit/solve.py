@@ -1,14 +1,15 @@
-"""Weighted linear least squares with per-band Tikhonov regularisation and conditioning.
+r"""Weighted linear least squares with per-band Tikhonov regularisation and conditioning.
 
 Every linear sub-problem of ``brdfcap.fit`` (inverse lighting, inverse SH-domain BRDF, each
 step of the bilinear factorisation, each closed-form step of Aldrian & Smith) is
 
-.. math:: \\min_x \\sum_i w_{ic} (b_{ic} - a_i^T x_c)^2 + \\lambda_c \\sum_l p_l \\|x_{l,c}\\|^2
+.. math:: \min_x \sum_i w_{ic} (b_{ic} - a_i^T x_c)^2 + \lambda_c \sum_l p_l \|x_{l,c}\|^2
 
 per colour channel ``c``, in float64, where ``x_l`` is the block of coefficients of band ``l``,
 ``w = 1/σ²`` comes from the noise model (uniform when unknown) and ``p_l`` are per-band penalty
 weights, by default ``p_l = l(l+1) + 0.01`` (the Laplace-Beltrami / surface-gradient norm on the
-sphere, :func:`default_band_penalty`): the DC term is nearly free, high bands are damped most. The design
+sphere, :func:`default_band_penalty`): the DC term is nearly free, high bands are damped most.
+The design
 matrix ``A`` may depend on the channel (``(N, K)`` or ``(N, C, K)``) and is consumed in chunks,
 so ``N × K`` never has to fit in memory.
 
@@ -48,7 +49,8 @@ import torch
 
 from brdfcap.errors import FitError
 
-__all__ = ["LinearSolution", "solve_wls", "noise_weights", "default_band_penalty", "REGULARIZATION_RULES", "EIG_RTOL",
+__all__ = ["LinearSolution", "solve_wls", "noise_weights", "default_band_penalty",
+           "REGULARIZATION_RULES", "EIG_RTOL",
            "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID"]
 
 #: Eigenvalues of the scaled normal matrix below ``EIG_RTOL × max`` are treated as exactly zero
@@ -317,7 +319,8 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         if covs is not None:
             covs[c] = (ps[:, None] * (uk * (g / (g + lam) ** 2)) @ uk.T * ps[None, :]) * sig2
     return LinearSolution(
-        coefficients=coef, coefficients_unregularised=x0, stderr=se_reg, stderr_unregularised=se_unreg, determined=determined,
+        coefficients=coef, coefficients_unregularised=x0, stderr=se_reg,
+        stderr_unregularised=se_unreg, determined=determined,
         resolution=resol, lam=lam_abs, lam_rel=lam_rel, chi2_reduced=chi2, dof=dofs,
         rule=rule_used, noise_source=noise_source, n_samples=int(nuse.max()), band=band,
         band_singular=[torch.stack(v) for v in band_sv], covariance=covs)

@@ -12,7 +12,6 @@ import math
 import pytest
 import torch
 from _inverse_helpers import random_lighting, unit
-
 from brdfcap.fit.brdf_models import BRDFSpec, render_directional, render_sh
 from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.inverse_lighting import fit_lighting
@@ -39,7 +38,7 @@ def _noisy(b, g, rel=0.01):
 
 
 def test_lambertian_lmax20_odd_bands_unobservable():
-    """lmax = 20: every odd band > 1 exactly unobservable and flagged; l <= 2 still accurate."""
+    """Lmax = 20: every odd band > 1 exactly unobservable and flagged; l <= 2 still accurate."""
     g = torch.Generator().manual_seed(0)
     n = unit(4000, g)
     bn, sd = _noisy(render_sh(LAMB, n, n, GRACE), g)
@@ -79,8 +78,11 @@ def test_extreme_lobes(spec, lmax, ill_expected):
 
 
 def test_less_than_a_hemisphere_of_normals():
-    """One view seeing a 30° cone of normals, lmax 4: the bands that a full sphere determines
-    become ill-conditioned (flagged), standard errors grow, the estimate stays finite."""
+    """Less than a hemisphere of normals.
+
+    One view seeing a 30° cone of normals, lmax 4: the bands that a full sphere determines
+    become ill-conditioned (flagged), standard errors grow, the estimate stays finite.
+    """
     g = torch.Generator().manual_seed(2)
     n = unit(40000, g, hemisphere=True)
     n = n[n[:, 2] > math.cos(math.radians(30))][:3000]

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import torch
 from _inverse_helpers import unit
-
-from brdfcap.fit.aldrian_smith import (colour_transform_matrix, fit_aldrian_smith,
-                                       fit_colour_transform)
+from brdfcap.fit.aldrian_smith import (
+    colour_transform_matrix,
+    fit_aldrian_smith,
+    fit_colour_transform,
+)
 from brdfcap.fit.brdf_models import diffuse_filter
 from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.sh import band_of_index, real_sh
@@ -34,8 +36,11 @@ def _scene(seed=0, n=3000, p=4):
 
 
 def test_noise_free_round_trip_known_colour_transform():
-    """Texture model + known (M, o): lighting, texture coefficients, the 3 tied specular
-    parameters and the free higher-order specular come back to 1e-6 (float64)."""
+    """Noise-free round trip with a known colour transform.
+
+    Texture model + known (M, o): lighting, texture coefficients, the 3 tied specular
+    parameters and the free higher-order specular come back to 1e-6 (float64).
+    """
     n, r, img, t = _scene()
     f = fit_aldrian_smith(n, r, img, texture_mean=t["tmean"], texture_pcs=t["T"],
                           colour=(t["M"], t["o"]))
@@ -47,8 +52,11 @@ def test_noise_free_round_trip_known_colour_transform():
 
 
 def test_paper_order_alone_is_approximate():
-    """The paper's order (diffuse ignoring the specular, then specular) alone is biased; the
-    joint refinement is what makes it exact — the test makes that difference visible."""
+    """The paper's order alone is approximate.
+
+    The paper's order (diffuse ignoring the specular, then specular) alone is biased; the
+    joint refinement is what makes it exact — the test makes that difference visible.
+    """
     n, r, img, t = _scene(1)
     f = fit_aldrian_smith(n, r, img, texture_mean=t["tmean"], texture_pcs=t["T"],
                           colour=(t["M"], t["o"]), refine_iter=0, max_outer=1)
@@ -68,8 +76,11 @@ def test_colour_transform_recovered_from_reference():
 
 
 def test_grayworld_prior_and_free_albedo_are_finite_and_report_ambiguities():
-    """No texture model: free albedo with the grayworld and simplicity priors — finite, and the
-    albedo/lighting and colour ambiguities are reported with how they were fixed."""
+    """Free albedo with priors.
+
+    No texture model: free albedo with the grayworld and simplicity priors — finite, and the
+    albedo/lighting and colour ambiguities are reported with how they were fixed.
+    """
     n, r, img, t = _scene(3)
     f = fit_aldrian_smith(n, r, img, grayworld=1e-2, simplicity=1e-3)
     assert torch.isfinite(f.lighting).all() and torch.isfinite(f.albedo).all()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 import torch
 from _inverse_helpers import random_lighting, unit
-
 from brdfcap.fit.bilinear import fit_bilinear
 from brdfcap.fit.brdf_models import BRDFSpec, phong_sh_filter, render_sh
 from brdfcap.fit.filters import lambertian_filter
@@ -25,8 +24,11 @@ def _data(seed, lmax=6, n=4000, noise=0.0):
 
 
 def test_noise_free_gauge_invariant_quantities_to_1e6():
-    """What the images determine — specular products f_l L_lm (l >= 1), diffuse products
-    kd Â_l L_lm and the total DC term — come back to 1e-6 relative; the scale is fixed by f_0 = 1."""
+    """Noise-free: gauge-invariant quantities to 1e-6.
+
+    What the images determine — specular products f_l L_lm (l >= 1), diffuse products
+    kd Â_l L_lm and the total DC term — come back to 1e-6 relative; the scale is fixed by f_0 = 1.
+    """
     light, n, r, b = _data(0)
     f = fit_bilinear(n, r, b, 6, brdf_lmax=6, rule="none")
     assert f.converged
@@ -48,8 +50,11 @@ def test_noise_free_gauge_invariant_quantities_to_1e6():
 
 
 def test_ambiguities_reported_not_hidden():
-    """The exact ambiguities (odd bands >= 3 seen only as products; the diffuse/specular split of
-    the DC term) are found as null directions, reported, and their coefficients flagged."""
+    """Ambiguities are reported, not hidden.
+
+    The exact ambiguities (odd bands >= 3 seen only as products; the diffuse/specular split of
+    the DC term) are found as null directions, reported, and their coefficients flagged.
+    """
     light, n, r, b = _data(1, noise=1e-3)
     f = fit_bilinear(n, r, b, 6, brdf_lmax=6)
     res = f.to_results()

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 from _inverse_helpers import random_lighting, unit
-
-from brdfcap.fit.brdf_models import (BRDFSpec, directional_albedo, phong_sh_filter,
-                                     reciprocity_error, render_directional, render_sh)
+from brdfcap.fit.brdf_models import (
+    BRDFSpec,
+    directional_albedo,
+    phong_sh_filter,
+    reciprocity_error,
+    render_directional,
+    render_sh,
+)
 from brdfcap.fit.inverse_brdf import fit_brdf_parametric, fit_brdf_sh
 
 
@@ -66,8 +69,11 @@ def test_parametric_noisy_float32_and_checks():
 
 
 def test_reciprocity_and_energy_checks_can_fail():
-    """The checks detect what they should: R&H's Phong is not reciprocal; kd = 1.5 is not
-    energy-conserving."""
+    """The physical checks can fail.
+
+    The checks detect what they should: R&H's Phong is not reciprocal; kd = 1.5 is not
+    energy-conserving.
+    """
     assert reciprocity_error(BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=20.0)) > 0.1
     assert reciprocity_error(BRDFSpec("microfacet", kd=[0.3] * 3, f0=[0.5] * 3,
                                       sigma=0.3)) < 1e-10
@@ -89,8 +95,11 @@ def test_sh_filter_round_trip_phong():
 
 
 def test_sh_filter_unexcited_bands_flagged():
-    """Lighting up to l = 2 only: BRDF bands 3.. are not excited — not determined, flagged
-    (R&H: the BRDF is recoverable only where the lighting has energy), and predicted so."""
+    """Unexcited BRDF bands are flagged.
+
+    Lighting up to l = 2 only: BRDF bands 3.. are not excited — not determined, flagged
+    (R&H: the BRDF is recoverable only where the lighting has energy), and predicted so.
+    """
     g = torch.Generator().manual_seed(3)
     spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=10.0)
     light = random_lighting(2, g, dc=1.0, amp=0.3)

@@ -11,7 +11,6 @@ import math
 import pytest
 import torch
 from _inverse_helpers import random_lighting, unit
-
 from brdfcap.fit.brdf_models import BRDFSpec, phong_sh_filter, render_sh
 from brdfcap.fit.conditioning import predicted_lstar
 from brdfcap.fit.datasets import GRACE_RH2001
@@ -44,8 +43,11 @@ def test_phong_filter_recurrence_matches_lambertian_and_gaussian():
 @pytest.mark.parametrize("name", list(CASES))
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_noise_free_round_trip(name, dtype):
-    """Well-conditioned coefficients come back to 1e-6 relative (float64 inputs; float32
-    inputs are limited by their own rounding, ~1e-7 relative per sample: 1e-4 guarded)."""
+    """Noise-free round trip of each BRDF.
+
+    Well-conditioned coefficients come back to 1e-6 relative (float64 inputs; float32
+    inputs are limited by their own rounding, ~1e-7 relative per sample: 1e-4 guarded).
+    """
     spec, lmax = CASES[name]
     g = torch.Generator().manual_seed(3)
     light = GRACE if lmax == 2 else random_lighting(lmax, g)
@@ -89,8 +91,11 @@ def _measured_vs_predicted(spec: BRDFSpec, model: str, rel_noise: float, seed: i
 
 @pytest.mark.parametrize("s", [16.0, 64.0, 256.0])
 def test_measured_lstar_phong_within_one_band(s):
-    """Issue 6: measured ill_conditioned_from_l within ±1 band of sqrt(2 s ln(1/ε)) (seed eq. 5)
-    at the measured noise level ε = stderr(L00)/|L00| (here ≈ 0.25; l* ≈ 6, 13, 28)."""
+    """Phong: measured l* within one band of the prediction.
+
+    Issue 6: measured ill_conditioned_from_l within ±1 band of sqrt(2 s ln(1/ε)) (seed eq. 5)
+    at the measured noise level ε = stderr(L00)/|L00| (here ≈ 0.25; l* ≈ 6, 13, 28).
+    """
     spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=s)
     measured, pred = _measured_vs_predicted(spec, "phong", 14.0, seed=int(s), s=s)
     assert pred is not None and measured is not None

@@ -5,11 +5,11 @@ from __future__ import annotations
 import json
 
 import pytest
+from brdfcap.capture.simulate import simulate
+from brdfcap.fit.datasets import GRACE_RH2001
 from click.testing import CliRunner
 
-from brdfcap.capture.simulate import simulate
 from brdfcap.cli import main
-from brdfcap.fit.datasets import GRACE_RH2001
 
 SCENE = """
 name = "phong sphere"
@@ -41,6 +41,7 @@ DIR = ('kind = "directional"\n[[lighting.lights]]\ndirection = [1.0, 0.3, 0.5]\n
 
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory):
+    """Simulate Phong sphere captures: environment (known lighting) and directional."""
     d = tmp_path_factory.mktemp("phong")
     out = {}
     for name, lt in (("env", ENV), ("dir", DIR)):
@@ -56,8 +57,11 @@ def _run(cap, out, *args):
 
 
 def test_problem_lighting_known_phong(captures, tmp_path):
-    """Problem 1 from a rendered capture: Grace Cathedral recovered with the Phong BRDF known
-    (error limited by the mesh-normal discretisation of the simulated sphere, < 0.5% of L00)."""
+    """Problem 1 from a rendered capture.
+
+    Grace Cathedral recovered with the Phong BRDF known
+    (error limited by the mesh-normal discretisation of the simulated sphere, < 0.5% of L00).
+    """
     r = _run(captures["env"], tmp_path / "o", "--problem", "lighting", "--lmax", "2")
     assert r["fit_schema"] == "brdfcap-fit/1" and r["fit"]["problem"] == "lighting"
     est = r["lighting"]["coefficients"]
