@@ -224,31 +224,49 @@ def _table_diagonal(z, seeds, lmax, out_t):
         p2, p1 = p1, p
 
 
-def _table_columns(z, seeds, lmax, out_t, mu0=0):
-    """Fill ``out_t`` (``K, N``) with the recurrence, one order at a time (cos/sin together)."""
+@lru_cache(maxsize=64)
+def _column_layout(lmax: int):
+    """Order-major buffer layout of the per-column recurrence and its map to SH indices.
+
+    Order ``m = 0`` occupies rows ``0..lmax`` (``l = m..lmax``); each order ``m >= 1`` a block of
+    ``lmax+1-m`` adjacent (cos, sin) row pairs, so every recurrence step writes one contiguous
+    ``(2, N)`` slab. Returns the block starts and ``src`` with ``out[:, k] = buf[src[k]]``.
+    """
+    starts = [0]
+    pos = lmax + 1
+    for m in range(1, lmax + 1):
+        starts.append(pos)
+        pos += 2 * (lmax + 1 - m)
+    src = [0] * num_coeffs(lmax)
+    for l in range(lmax + 1):
+        src[l * (l + 1)] = l
+        for m in range(1, l + 1):
+            src[l * (l + 1) + m] = starts[m] + 2 * (l - m)
+            src[l * (l + 1) - m] = starts[m] + 2 * (l - m) + 1
+    return tuple(starts), torch.tensor(src)
+
+
+def _table_columns(z, seeds, lmax, buf, mu0=0):
+    """Fill ``buf`` (``K, N``, layout of :func:`_column_layout`) one order at a time."""
+    starts, _ = _column_layout(lmax)
+    n = z.shape[0]
     for m in range(mu0, lmax + 1):
         if m == 0:
-            def sel(l):
-                return out_t[l * (l + 1)]
-            seed = seeds[0]
+            blk = buf[: lmax + 1]
+            blk[0].copy_(seeds[0])
         else:
-            def sel(l, m=m):
-                c = l * (l + 1)
-                return out_t[c - m: c + m + 1: 2 * m]  # rows (l,-m) and (l,m): sin, cos
-            seed = torch.stack((seeds[2 * m], seeds[2 * m - 1]))
-        q2 = None
-        q1 = sel(m)
-        q1.copy_(seed)
+            blk = buf[starts[m]: starts[m] + 2 * (lmax + 1 - m)].view(lmax + 1 - m, 2, n)
+            blk[0, 0].copy_(seeds[2 * m - 1])
+            blk[0, 1].copy_(seeds[2 * m])
         for l in range(m + 1, lmax + 1):
-            dst = sel(l)
+            dst = blk[l - m]
             if l == m + 1:
-                torch.mul(q1, z, out=dst)
+                torch.mul(blk[0], z, out=dst)
                 dst.mul_(math.sqrt(2 * m + 3))
             else:
                 a, b = _ab(l, m)
-                torch.mul(q2, -a * b, out=dst)
-                dst.addcmul_(q1, z, value=a)
-            q2, q1 = q1, dst
+                torch.mul(blk[l - m - 2], -a * b, out=dst)
+                dst.addcmul_(blk[l - m - 1], z, value=a)
 
 
 def _table(x, y, z, lmax, power_shift=0, mu0=0):
@@ -266,13 +284,15 @@ def _table(x, y, z, lmax, power_shift=0, mu0=0):
     else:
         out = z.new_empty((n, k))
         bp = _BLOCK_POINTS
-        out_t = z.new_empty((k, min(bp, n)))
+        src = _column_layout(lmax)[1].to(z.device)
+        buf = z.new_zeros((k, min(bp, n)))
         for s in range(0, n, bp):
             e = min(s + bp, n)
-            ot = out_t[:, : e - s]
+            if e - s != buf.shape[1]:
+                buf = z.new_zeros((k, e - s))
             seeds = _seeds(x[s:e], y[s:e], lmax, mu0, power_shift, scale, norms)
-            _table_columns(z[s:e], seeds, lmax, ot, mu0)
-            out[s:e].copy_(ot.t())
+            _table_columns(z[s:e], seeds, lmax, buf, mu0)
+            out[s:e].copy_(buf.index_select(0, src).t())
     if mu0 > 0:  # rows of orders below mu0 were never written (columns) / are zero seeds
         low = order_of_index(lmax).abs() < mu0
         out[:, low.to(out.device)] = 0
