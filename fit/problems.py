@@ -147,12 +147,16 @@ def problem_brdf(samples, cfg, opts) -> ProblemResult:
         return ProblemResult(prediction=pred, results=res, summary=summ)
     from .inverse_brdf import fit_brdf_sh, load_known_lighting
 
-    coeffs = (cfg.raw.get("lighting") or {}).get("coefficients")
-    if coeffs is None:
+    lt = cfg.raw.get("lighting") or {}
+    if "coefficients" in lt:
+        light = load_known_lighting(lt["coefficients"], 0)
+    elif "probe" in lt:  # lat-long HDR light probe, projected to SH (fit.envmap)
+        lmax_p = int(lt.get("probe_lmax", max(opts.brdf_lmax, opts.lmax)))
+        light = load_known_lighting(cfg.root / lt["probe"], lmax_p)
+    else:
         raise FitError("problem 'brdf' under environment lighting needs the lighting known: "
-                       "add lighting.coefficients (SH, R&H 2001 real basis) to capture.toml",
-                       cfg.toml_path)
-    light = load_known_lighting(coeffs, 0)
+                       "add lighting.coefficients (SH, R&H 2001 real basis) or lighting.probe "
+                       "(lat-long HDR image) to capture.toml", cfg.toml_path)
     fit = fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light,
                       opts.brdf_lmax, variance=samples.variance, rule=opts.rule)
     from .brdf_models import diffuse_filter

@@ -186,3 +186,23 @@ def test_parametric_extremes(model, kw):
     for v in list(f.values.values()) + list(f.stderr.values()):
         assert not torch.isnan(v).any()
     assert torch.isfinite(f.values["kd"]).all()
+
+
+@pytest.mark.parametrize("rule", ["gcv", "discrepancy", "none"])
+def test_every_rule_is_stable_and_named(rule):
+    """Each regularisation rule gives finite estimates and says which rule ran; discrepancy
+    without a noise model falls back to GCV and says so (never silently)."""
+    g = torch.Generator().manual_seed(9)
+    n = unit(2000, g)
+    bn, sd = _noisy(render_sh(LAMB, n, n, GRACE), g)
+    fit = fit_lighting(n, bn, 8, LAMB, variance=torch.full_like(bn, sd ** 2), rule=rule)
+    _sane(fit)
+    assert fit.regularization["rule"] == rule
+    nofit = fit_lighting(n, bn, 8, LAMB, rule=rule)
+    _sane(nofit)
+    if rule == "discrepancy":
+        assert nofit.regularization["rule"].startswith("gcv (discrepancy needs a noise model")
+    if rule == "none":
+        assert max(fit.regularization["lambda"]) == 0.0
+    else:
+        assert max(fit.regularization["lambda"]) > 0.0  # lmax 8 > what the data support

@@ -113,3 +113,19 @@ def test_sh_filter_unexcited_bands_flagged():
     assert not fit.determined[3:].any()
     assert torch.isfinite(fit.filter).all()
     assert (fit.filter[:3, 0] - phong_sh_filter(10.0, 2)).abs().max() < 0.05
+
+
+def test_sh_filter_with_a_light_probe_file(tmp_path):
+    """Known lighting given as a lat-long HDR probe (projected by fit.envmap): same filter."""
+    from brdfcap.fit.envmap import reconstruct_envmap, write_envmap
+    from brdfcap.fit.inverse_brdf import load_known_lighting
+
+    g = torch.Generator().manual_seed(4)
+    light = random_lighting(6, g, dc=1.0, amp=0.2)
+    write_envmap(tmp_path / "probe.exr", reconstruct_envmap(light, 96, 192))
+    probe = load_known_lighting(tmp_path / "probe.exr", 6)
+    spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=12.0)
+    n, r = unit(3000, g), unit(3000, g)
+    fit = fit_brdf_sh(n, r, render_sh(spec, n, r, light), probe, 6, diffuse=False)
+    # the probe is stored as float32 EXR: ~1e-7 relative
+    assert (fit.filter[:, 0] - phong_sh_filter(12.0, 6)).abs().max() < 1e-4
