@@ -108,7 +108,8 @@ def _backends(lmax):
 
 def _align(y: torch.Tensor, ref: torch.Tensor, lmax: int) -> torch.Tensor:
     """Match e3nn's basis functions to ours within each band (permutation and sign) by the
-    largest |correlation| over the sample directions; e3nn orders and signs them its own way."""
+    largest |correlation| over the sample directions; e3nn orders and signs them its own way.
+    """
     out = torch.empty_like(y)
     for l in range(lmax + 1):
         s = slice(l * l, (l + 1) ** 2)
@@ -122,11 +123,18 @@ def filter_tables() -> str:
     """The l* / approximation tables of docs/sh.md §5 (``--filter-tables``)."""
     import math
 
-    from brdfcap.fit.filters import (ill_conditioned_band, lambertian_filter,
-                                     microfacet_filter, microfacet_filter_approx, mirror_filter,
-                                     phong_filter, phong_filter_approx,
-                                     predicted_lstar_lambertian, predicted_lstar_microfacet,
-                                     predicted_lstar_phong)
+    from brdfcap.fit.filters import (
+        ill_conditioned_band,
+        lambertian_filter,
+        microfacet_filter,
+        microfacet_filter_approx,
+        mirror_filter,
+        phong_filter,
+        phong_filter_approx,
+        predicted_lstar_lambertian,
+        predicted_lstar_microfacet,
+        predicted_lstar_phong,
+    )
 
     out = ["| filter | ε | l* analytic | l* computed |", "|---|---|---|---|"]
     for eps in (1e-2, 1e-3):

@@ -16,7 +16,8 @@ Here :math:`\\hat\\rho` is the *transfer function* — the BRDF times the clampe
 \\,d\\theta`, hence :math:`\\Lambda_l\\hat\\rho_l = 2\\pi\\int_{-1}^1 \\hat\\rho(u) P_l(u)\\,du`.
 
 General isotropic BRDFs use the coefficients :math:`\\hat\\rho_{lpq}` of
-:math:`\\hat\\rho(\\omega_i,\\omega_o) = \\sum_{lpq}\\hat\\rho_{lpq}\\,\\overline{Y_l^q(\\omega_i)}\\,
+:math:`\\hat\\rho(\\omega_i,\\omega_o) =
+\\sum_{lpq}\\hat\\rho_{lpq}\\,\\overline{Y_l^q(\\omega_i)}\\,
 Y_p^q(\\omega_o)` (complex SH, Condon-Shortley; R&H SIGGRAPH 2001 eq. 16), with
 :math:`B_{lmpq} = \\Lambda_l\\hat\\rho_{lpq} L_{lm}` (eq. 17); see :func:`isotropic_brdf_coeffs`.
 """
@@ -27,8 +28,8 @@ import math
 from typing import Callable
 
 import numpy as np
-from scipy.special import roots_legendre
 import torch
+from scipy.special import roots_legendre
 
 from .sh import num_coeffs
 
@@ -101,7 +102,8 @@ def lambertian_energy_fraction(lmax: int, lmax_total: int = 4096) -> float:
 def mirror_filter(lmax: int) -> torch.Tensor:
     r"""Mirror (delta) transfer function about the reflection direction: :math:`\Lambda_l
     \hat\rho_l = 1` for every ``l`` — no fall-off, inverse lighting well-conditioned
-    (R&H SIGGRAPH 2001, eq. 19 in the reflection parameterisation; seed eq. 1)."""
+    (R&H SIGGRAPH 2001, eq. 19 in the reflection parameterisation; seed eq. 1).
+    """
     return torch.ones(lmax + 1, dtype=torch.float64)
 
 
@@ -163,7 +165,8 @@ def phong_filter(s: float, lmax: int) -> torch.Tensor:
 
 def phong_filter_approx(s: float, lmax: int) -> torch.Tensor:
     r"""R&H's Gaussian approximation :math:`\exp(-l^2/2s)` (SIGGRAPH 2001 eq. 19; seed eq. 5),
-    valid for :math:`s \gg 1` and :math:`s \gg l` (measured in ``docs/sh.md``)."""
+    valid for :math:`s \gg 1` and :math:`s \gg l` (measured in ``docs/sh.md``).
+    """
     l = torch.arange(lmax + 1, dtype=torch.float64)
     return torch.exp(-(l ** 2) / (2.0 * s))
 
@@ -263,7 +266,8 @@ def microfacet_filter(sigma: float, lmax: int, distribution: str = "beckmann",
         (:math:`\exp(-(\sigma l)^2)`, seed eq. 6).
     """
     if distribution not in _DISTRIBUTIONS:
-        raise ValueError(f"unknown distribution {distribution!r}; valid: {', '.join(_DISTRIBUTIONS)}")
+        raise ValueError(f"unknown distribution {distribution!r}; "
+                         f"valid: {', '.join(_DISTRIBUTIONS)}")
     if not sigma > 0:
         raise ValueError(f"sigma must be > 0, got {sigma}")
     n = n_nodes or int(max(600, 4 * lmax, 60.0 / sigma))
@@ -274,7 +278,8 @@ def microfacet_filter(sigma: float, lmax: int, distribution: str = "beckmann",
 def microfacet_filter_approx(sigma: float, lmax: int) -> torch.Tensor:
     r"""R&H's approximation :math:`\Lambda_l\hat\rho_l \approx \exp(-(\sigma l)^2)` (seed eq. 6),
     from the small-angle Beckmann lobe :math:`\hat\rho \approx e^{-\theta_i^2/4\sigma^2}/
-    (4\pi\sigma^2)`, a Gaussian of variance :math:`2\sigma^2` in :math:`\theta_i`."""
+    (4\pi\sigma^2)`, a Gaussian of variance :math:`2\sigma^2` in :math:`\theta_i`.
+    """
     l = torch.arange(lmax + 1, dtype=torch.float64)
     return torch.exp(-((sigma * l) ** 2))
 
@@ -392,20 +397,23 @@ def ill_conditioned_band(filt: torch.Tensor, eps: float, relative: bool = True) 
 
 def predicted_lstar_phong(s: float, eps: float) -> float:
     r"""Analytic :math:`l^*` for Phong: :math:`e^{-l^2/2s} = \epsilon \Rightarrow
-    l^* = \sqrt{2 s \ln(1/\epsilon)}` (from seed eq. 5)."""
+    l^* = \sqrt{2 s \ln(1/\epsilon)}` (from seed eq. 5).
+    """
     return math.sqrt(2.0 * s * math.log(1.0 / eps))
 
 
 def predicted_lstar_microfacet(sigma: float, eps: float) -> float:
     r"""Analytic :math:`l^*` for the microfacet lobe: :math:`e^{-(\sigma l)^2} = \epsilon
-    \Rightarrow l^* = \sqrt{\ln(1/\epsilon)}/\sigma` (from seed eq. 6)."""
+    \Rightarrow l^* = \sqrt{\ln(1/\epsilon)}/\sigma` (from seed eq. 6).
+    """
     return math.sqrt(math.log(1.0 / eps)) / sigma
 
 
 def predicted_lstar_lambertian(eps: float) -> float:
     r"""Analytic :math:`l^*` for the clamped cosine from the even-band asymptote
     :math:`|\hat A_l| \approx 2\sqrt{2\pi}\,l^{-5/2}` (Stirling on R&H 2001 eq. 8), relative
-    to :math:`\hat A_0 = \pi`: :math:`l^* = (2\sqrt{2\pi}/(\pi\epsilon))^{2/5}`."""
+    to :math:`\hat A_0 = \pi`: :math:`l^* = (2\sqrt{2\pi}/(\pi\epsilon))^{2/5}`.
+    """
     return (2.0 * math.sqrt(2.0 * math.pi) / (math.pi * eps)) ** 0.4
 
 

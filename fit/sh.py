@@ -136,7 +136,7 @@ def order_of_index(lmax: int) -> torch.Tensor:
 # --------------------------------------------------------------------------------------------
 @lru_cache(maxsize=64)
 def _seed_norms(lmax: int) -> tuple[float, ...]:
-    r"""``q_m = sqrt(1/4π ∏_{k<=m} (2k+1)/2k)`` for ``m = 0..lmax`` (Holmes & Featherstone eq. 13)."""
+    r"""Seed norms ``q_m = sqrt(1/4π ∏_{k<=m} (2k+1)/2k)``, ``m = 0..lmax`` (H&F 2002 eq. 13)."""
     q = [1.0 / math.sqrt(4.0 * math.pi)]
     for m in range(1, lmax + 1):
         q.append(q[-1] * math.sqrt((2 * m + 1) / (2 * m)))
@@ -587,7 +587,7 @@ def real_to_complex_coeffs(c_real: torch.Tensor) -> torch.Tensor:
 
 
 def complex_to_real_coeffs(c_complex: torch.Tensor) -> torch.Tensor:
-    """Real coefficients ``U.T @ c_complex``; the imaginary part (zero for real functions) is dropped."""
+    """Real coefficients ``U.T @ c_complex`` (imaginary part, zero for real functions, dropped)."""
     lmax = _lmax_of(c_complex.shape[-1])
     U = real_to_complex_matrix(lmax, dtype=c_complex.dtype).to(c_complex.device)
     return (c_complex @ U).real

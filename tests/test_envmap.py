@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from brdfcap.fit.envmap import (
     FRAME_DESCRIPTION,
     envmap_sh_from_file,
@@ -101,7 +100,8 @@ def test_windows_reduce_ringing_and_are_recorded():
     for win in ("none", "hann", "lanczos"):
         rec = reconstruct_envmap(project_envmap(step, lmax, window=win), h, 2 * h)
         over[win] = rec.max().item() - 1.0
-    assert over["none"] > 0.05 and over["hann"] < over["none"] / 4 and over["lanczos"] < over["none"] / 2
+    assert over["none"] > 0.05
+    assert over["hann"] < over["none"] / 4 and over["lanczos"] < over["none"] / 2
     torch.testing.assert_close(sh_window("hanning", 3), sh_window("hann", 3))
     assert sh_window("hann", 3)[0] == 1 and sh_window("lanczos", 3)[0] == 1
     with pytest.raises(ValueError, match="valid"):
@@ -138,7 +138,8 @@ def test_read_errors(tmp_path):
 
 def test_rh2001_eq13_irradiance_from_table1():
     """R&H 2001 eq. 13 with the published c1..c5 and the Grace Cathedral Table 1 coefficients
-    equals Σ Â_l L_lm y_lm(n) computed by this package (convention + filter + signs)."""
+    equals Σ Â_l L_lm y_lm(n) computed by this package (convention + filter + signs).
+    """
     table = torch.tensor([  # L00, L1-1, L10, L11, L2-2, L2-1, L20, L21, L22 (R, G, B)
         [0.79, 0.44, 0.54], [0.39, 0.35, 0.60], [-0.34, -0.18, -0.27], [-0.29, -0.06, 0.01],
         [-0.11, -0.05, -0.12], [-0.26, -0.22, -0.47], [-0.16, -0.09, -0.15],

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from brdfcap.fit.filters import (
     directional_source,
     ill_conditioned_band,
@@ -142,7 +141,8 @@ def test_phong_rh_products_and_parity_zeros():
 
 def test_phong_approximation_regime():
     """Seed eq. 5 holds for s ≫ l: the error at l = sqrt(s) shrinks like 1/sqrt(s) and is
-    large at l ~ s."""
+    large at l ~ s.
+    """
     errs = []
     for s in (10.0, 100.0, 1000.0, 10000.0):
         lmax = int(math.sqrt(s))
@@ -156,7 +156,8 @@ def test_phong_approximation_regime():
 @pytest.mark.parametrize("sigma", [0.03, 0.1, 0.2])
 def test_microfacet_beckmann_vs_gaussian(sigma):
     """Seed eq. 6: Λ_l ρ̂_l ≈ exp(−(σl)²); agreement within 0.1 (absolute) for σl ≤ 2 and the
-    gap grows with σ (small-angle approximation)."""
+    gap grows with σ (small-angle approximation).
+    """
     lmax = int(2 / sigma)
     m = microfacet_filter(sigma, lmax)
     a = microfacet_filter_approx(sigma, lmax)
@@ -183,7 +184,8 @@ def test_microfacet_options():
 
 def test_zonal_convolve_is_irradiance():
     """E = Σ Â_l L_lm y_lm reproduces the irradiance of a directional source: max(n·d, 0)
-    approximated by the band-limited clamped cosine (R&H 2001 eqs. 7-8)."""
+    approximated by the band-limited clamped cosine (R&H 2001 eqs. 7-8).
+    """
     lmax = 40
     d = torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64)
     L = torch.stack([directional_source(lmax, d)] * 3, -1)          # (K, 3)

@@ -6,12 +6,11 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from brdfcap.fit.envmap import latlong_directions, project_envmap
 from brdfcap.fit.rotation import rotate_sh, rotation_matrix, wigner_d_real, wigner_d_real_blocks
 from brdfcap.fit.sh import num_coeffs, real_sh, sh_index
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 
 def _random_rotation(seed, dtype=torch.float64):
@@ -26,7 +25,7 @@ def _random_rotation(seed, dtype=torch.float64):
 
 
 def test_rotation_against_reprojection_lmax50():
-    """c' = D(R) c equals the SH projection of f(Rᵀω), sampled on an exact grid (≤ 1e-10)."""
+    """C' = D(R) c equals the SH projection of f(Rᵀω), sampled on an exact grid (≤ 1e-10)."""
     lmax = 50
     g = torch.Generator().manual_seed(0)
     c = torch.randn(num_coeffs(lmax), generator=g, dtype=torch.float64)
@@ -65,7 +64,7 @@ def test_composition_inverse_identity():
 
 
 def test_rotation_about_z_is_analytic():
-    """About +z by α: (c'_{l,m}, c'_{l,-m}) = (cos mα c_m − sin mα c_-m, sin mα c_m + cos mα c_-m)."""
+    """About +z by α: (c'_lm, c'_l-m) = (cos mα c_m − sin mα c_-m, sin mα c_m + cos mα c_-m)."""
     lmax, a = 8, 0.7
     R = rotation_matrix((0.0, 0.0, 1.0), a)
     c = torch.randn(num_coeffs(lmax), dtype=torch.float64)

@@ -9,13 +9,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import roots_legendre
 import pytest
 import scipy.special as sp
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from brdfcap.fit import sh as S
 from brdfcap.fit.sh import (
     angles_from_directions,
@@ -29,6 +25,9 @@ from brdfcap.fit.sh import (
     real_to_complex_matrix,
     sh_index,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.special import roots_legendre
 
 DTYPES = [torch.float32, torch.float64]
 #: absolute tolerance per dtype for O(1) SH values at low degree (float32 includes the rounding
@@ -207,13 +206,15 @@ def _legendre_orthonormality_error(lmax, orders):
         p = legendre_normalized(z, lmax, m=m)          # (nodes, lmax+1-m)
         assert torch.isfinite(p).all()
         gram = p.T @ (p * w[:, None])
-        worst = max(worst, (gram - torch.eye(gram.shape[0], dtype=torch.float64)).abs().max().item())
+        eye = torch.eye(gram.shape[0], dtype=torch.float64)
+        worst = max(worst, (gram - eye).abs().max().item())
     return worst
 
 
 def test_orthonormality_lmax1000_selected_orders():
     """Separable GL × uniform-φ check at lmax = 1000: φ-orthogonality of cos/sin mφ on the
-    uniform grid is exact, so orthonormality reduces to the Legendre Gram matrix per order."""
+    uniform grid is exact, so orthonormality reduces to the Legendre Gram matrix per order.
+    """
     err = _legendre_orthonormality_error(1000, [0, 1, 2, 17, 333, 500, 777, 998, 1000])
     assert err <= 1e-10, err
 
@@ -262,7 +263,8 @@ def test_lmax1000_finite_at_and_near_poles_vs_scipy(dtype):
 
 def test_float32_accuracy_table():
     """The float32 error bounds quoted in docs/sh.md (torch engine, vs float64 on the same
-    float32-rounded inputs, so only the arithmetic is measured)."""
+    float32-rounded inputs, so only the arithmetic is measured).
+    """
     bounds = {2: 3e-7, 4: 8e-7, 8: 2.5e-6, 16: 1e-5, 32: 3e-5, 48: 4e-5, 49: 3e-7, 100: 3e-7}
     d = _unit(4000, torch.float32, seed=3)
     d[0] = torch.tensor([0.0, 0.0, 1.0])
