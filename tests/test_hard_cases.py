@@ -190,8 +190,11 @@ def test_parametric_extremes(model, kw):
 
 @pytest.mark.parametrize("rule", ["gcv", "discrepancy", "none"])
 def test_every_rule_is_stable_and_named(rule):
-    """Each regularisation rule gives finite estimates and says which rule ran; discrepancy
-    without a noise model falls back to GCV and says so (never silently)."""
+    """Every rule is stable and named.
+
+    Each regularisation rule gives finite estimates and says which rule ran; discrepancy
+    without a noise model falls back to GCV and says so (never silently).
+    """
     g = torch.Generator().manual_seed(9)
     n = unit(2000, g)
     bn, sd = _noisy(render_sh(LAMB, n, n, GRACE), g)
