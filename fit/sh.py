@@ -459,8 +459,12 @@ def real_sh(directions: torch.Tensor, lmax: int) -> torch.Tensor:
     _compute_dtype(directions.dtype, lmax)  # validates dtype
     if _use_sphericart(directions, lmax):
         flat = directions.reshape(-1, 3)
-        out = _sphericart_calc(int(lmax)).compute(flat.contiguous())
-        return out.reshape(*directions.shape[:-1], out.shape[-1])
+        try:
+            out = _sphericart_calc(int(lmax)).compute(flat.contiguous())
+        except (RuntimeError, ValueError, TypeError):  # e.g. a CPU-only sphericart build
+            out = None
+        if out is not None:
+            return out.reshape(*directions.shape[:-1], out.shape[-1])
     return _RealSH.apply(directions, int(lmax))
 
 
