@@ -14,7 +14,8 @@ Known lighting may be SH coefficients, a light probe file (lat-long HDR, project
 :func:`brdfcap.fit.envmap.envmap_sh_from_file`) or distant lights (then use
 :func:`fit_brdf_parametric` / :func:`fit_brdf_sh_directional`).
 
-Isotropic ``ρ̂_lpq`` (view-dependent) is not implemented yet; see ``docs/fitting.md``.
+Isotropic, view-dependent ``ρ̂_lpq`` (R&H 2001 eq. 16-17): :func:`fit_brdf_isotropic`, with the
+lighting rotated into each sample's local frame by Wigner D blocks.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from .sh import band_of_index, real_sh
 from .solve import LinearSolution, noise_weights, solve_wls
 
 __all__ = ["BRDFSHFit", "fit_brdf_sh", "load_known_lighting", "fit_brdf_parametric",
-           "ParametricFit"]
+           "ParametricFit", "fit_brdf_isotropic", "isotropic_design", "local_frames"]
 
 
 @dataclass
@@ -169,3 +170,87 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
                      determined=sol.determined[: lmax + 1], bands=rows,
                      ill_conditioned_from_l=ill, noise_level=eps, prediction=prediction,
                      solution=sol, checks=checks)
+
+
+def local_frames(normal: torch.Tensor) -> torch.Tensor:
+    """``(N, 3, 3)`` world→local rotations with rows ``(t, b, n)`` (any tangent: the isotropic
+    model does not depend on it).
+    """
+    n = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
+    a = torch.zeros_like(n)
+    use_x = n[:, 2].abs() > 0.9
+    a[:, 0] = use_x.to(n.dtype)
+    a[:, 2] = (~use_x).to(n.dtype)
+    t = torch.nn.functional.normalize(torch.cross(a, n, dim=-1), dim=-1)
+    b = torch.cross(n, t, dim=-1)
+    return torch.stack([t, b, n], -2)
+
+
+def _lpk_index(lmax: int, pmax: int) -> list[tuple[int, int, int]]:
+    return [(l, p, k) for l in range(lmax + 1) for p in range(pmax + 1)
+            for k in range(min(l, p) + 1)]
+
+
+def isotropic_design(normal: torch.Tensor, wo: torch.Tensor, light_sh: torch.Tensor,
+                     lmax: int, pmax: int) -> tuple[torch.Tensor, list]:
+    r"""Design ``(N, C, J)`` of the isotropic SH-domain BRDF ``ρ̂_lpk`` under known lighting.
+
+    With the lighting rotated into each sample's local frame, ``L'_l = D^l(R_n) L_l``
+    (:mod:`brdfcap.fit.rotation`), and the isotropic expansion of
+    :func:`brdfcap.fit.filters.isotropic_brdf_coeffs` (R&H 2001 eq. 16),
+    ``B(n, ωo) = Σ_{l,p,k} ρ̂_lpk Σ_{q=±k} L'_lq y_pq(ωo')`` — the complex-basis sum over
+    ``q = ±k`` equals the real-basis one (the Condon-Shortley phases cancel in
+    ``conj(Y_l^q) Y_p^q``). Linear in ``ρ̂_lpk``.
+    """
+    from .rotation import wigner_d_real_blocks
+
+    f64 = torch.float64
+    R = local_frames(normal)
+    wo_loc = torch.einsum("nij,nj->ni", R, wo.to(f64))
+    L = light_sh.to(f64)
+    ll = int(math.isqrt(L.shape[0])) - 1
+    blocks = wigner_d_real_blocks(R, lmax)
+    lrot = []
+    for l in range(lmax + 1):
+        if l <= ll:
+            lrot.append(torch.einsum("nij,jc->nic", blocks[l], L[l * l:(l + 1) ** 2]))
+        else:
+            lrot.append(torch.zeros(R.shape[0], 2 * l + 1, L.shape[1], dtype=f64))
+    yo = real_sh(wo_loc, pmax)
+    idx = _lpk_index(lmax, pmax)
+    cols = []
+    for l, p, k in idx:
+        qs = [0] if k == 0 else [k, -k]
+        col = sum(lrot[l][:, l + q, :] * yo[:, p * (p + 1) + q, None] for q in qs)
+        cols.append(col)
+    return torch.stack(cols, -1), idx
+
+
+def fit_brdf_isotropic(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.Tensor,
+                       light_sh: torch.Tensor, lmax: int, pmax: int | None = None,
+                       variance: torch.Tensor | None = None, rule: str = "gcv") -> dict:
+    """Recover isotropic ``ρ̂_lpk`` (R&H 2001 eq. 16 convention) under known SH lighting.
+
+    Returns
+    -------
+    dict
+        ``coefficients`` ``(lmax+1, pmax+1, lmax+1, C)`` indexed ``[l, p, |q|]`` (zeros where
+        ``|q| > min(l, p)``), ``stderr`` (same shape, inf where not determined), ``bands``
+        (statistics per ``l``), ``ill_conditioned_from_l``, ``solution``.
+    """
+    pmax = lmax if pmax is None else pmax
+    a, idx = isotropic_design(normal, wo, light_sh, lmax, pmax)
+    b = radiance.to(torch.float64)
+    w, src = noise_weights(b, None if variance is None else variance.to(torch.float64))
+    band = torch.tensor([l for l, _, _ in idx])
+    sol = solve_wls(a, b, w, band, rule=rule, noise_known=variance is not None,
+                    band_penalty=torch.ones(lmax + 1, dtype=torch.float64), noise_source=src)
+    rows, ill = band_statistics(sol)
+    nch = b.shape[1]
+    coef = torch.zeros(lmax + 1, pmax + 1, lmax + 1, nch, dtype=torch.float64)
+    se = torch.full_like(coef, math.inf)
+    for j, (l, p, k) in enumerate(idx):
+        coef[l, p, k] = sol.coefficients[j]
+        se[l, p, k] = sol.stderr[j]
+    return {"coefficients": coef, "stderr": se, "bands": rows, "ill_conditioned_from_l": ill,
+            "index": idx, "solution": sol}
