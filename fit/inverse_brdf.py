@@ -173,8 +173,9 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
 
 
 def local_frames(normal: torch.Tensor) -> torch.Tensor:
-    """``(N, 3, 3)`` world→local rotations with rows ``(t, b, n)`` (any tangent: the isotropic
-    model does not depend on it).
+    """Return ``(N, 3, 3)`` world→local rotations with rows ``(t, b, n)``.
+
+    Any tangent ``t`` will do: the isotropic model does not depend on it.
     """
     n = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
     a = torch.zeros_like(n)
