@@ -78,7 +78,21 @@ class BilinearFit:
         def fin(v):
             return [x if math.isfinite(x) else None for x in v.tolist()]
         cond = conditioning_json(self.lighting)
-        cond["brdf"] = {"measured": self.filter_ill_conditioned_from_l, "predicted": None}
+        L = self.lighting.coefficients
+        lmax = self.lighting.lmax
+        band = band_of_index(lmax)
+        amp = torch.stack([L[band == l].pow(2).mean(0).sqrt() for l in range(lmax + 1)])
+        rel = (amp / L[0].abs().clamp_min(1e-300)).median(-1).values
+        eps = self.lighting.noise_level
+        below = torch.nonzero(rel < eps)
+        cond["brdf"] = {"measured": self.filter_ill_conditioned_from_l,
+                        "noise_level": eps,
+                        "predicted": {"model": "lighting spectrum", "eps": eps,
+                                      "first_ill_band": int(below[0]) if below.numel() else None,
+                                      "lstar": None,
+                                      "formula": "first l with sqrt(mean_m L_lm^2)/|L_00| < eps "
+                                                 "(bands beyond the lighting's lmax are never "
+                                                 "excited)"}}
         return {"lighting": lighting_json(self.lighting),
                 "brdf": {"model": "diffuse+sh-radial-specular",
                          "parameters": {"kd": self.kd.tolist(), "filter": self.filter.tolist()},
