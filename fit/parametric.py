@@ -27,8 +27,7 @@ import torch
 
 from brdfcap.errors import FitError
 
-from .brdf_models import (BRDFSpec, _specular_directional, directional_albedo,
-                          reciprocity_error)
+from .brdf_models import BRDFSpec, _specular_directional, directional_albedo, reciprocity_error
 from .solve import noise_weights
 
 __all__ = ["ParametricFit", "fit_brdf_parametric", "PARAMETRIC_MODELS", "SHAPE_BOUNDS"]
