@@ -102,7 +102,12 @@ def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, problem: s
         _fail(BrdfcapError("no such capture directory", path), debug)
     captures = find_captures(path)
     if not captures:
-        _fail(BrdfcapError("no capture.toml found at or under this directory", path), debug)
+        hint = ""
+        if (path / "light_directions.txt").is_file():
+            hint = (f"; this looks like a DiLiGenT-layout dataset: convert it first with "
+                    f"'brdfcap import-diligent {path} CAPTURE_DIR'")
+        _fail(BrdfcapError("no capture.toml found at or under this directory" + hint, path),
+              debug)
     single = len(captures) == 1 and captures[0] == path
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
                       brdf_lmax=brdf_lmax)
@@ -189,13 +194,15 @@ def demo_cmd(obj: _Ctx, out: Path, lmax: int) -> None:
     click.echo(f"results: {outcome.results_path}")
 
 
-from brdfcap.cmd_diligent import import_diligent_cmd  # noqa: E402  (DiLiGenT import, issue 8)
-
-main.add_command(import_diligent_cmd)
+# Sub-commands that live in their own modules (imported here, after ``main`` exists, because
+# some of them reuse this module's helpers).
 from brdfcap.cmd_bench import bench_cmd  # noqa: E402  (accuracy vs time, issue 7)
-main.add_command(bench_cmd)
+from brdfcap.cmd_diligent import import_diligent_cmd  # noqa: E402  (DiLiGenT import, issue 8)
 from brdfcap.cmd_envmap import envmap_sh_cmd  # noqa: E402  (SH of a light probe, issue 3)
-main.add_command(envmap_sh_cmd)
+
+for _cmd in (import_diligent_cmd, bench_cmd, envmap_sh_cmd):
+    main.add_command(_cmd)
+
 
 def entry() -> None:
     """Console-script entry point: run :func:`main`, then exit without interpreter teardown.

@@ -272,3 +272,11 @@ def test_fit_rejects_empty_samples():
 
     with pytest.raises(FitError):
         fit_lighting_lambertian(torch.zeros(0, 3), torch.zeros(0, 3), 2)
+
+
+def test_run_on_diligent_layout_hints_at_import(tmp_path):
+    """Pointing `run` at a DiLiGenT-layout directory names the import command instead of a bare
+    'no capture.toml'."""
+    (tmp_path / "light_directions.txt").write_text("0 0 1\n")
+    res = _invoke("run", tmp_path, "--out", tmp_path / "o")
+    _one_line_error(res, "import-diligent")
