@@ -36,6 +36,8 @@ import numpy as np
 
 from brdfcap.errors import CaptureError
 
+from .images import read_pixels
+
 __all__ = ["DiligentData", "read_diligent", "import_diligent", "write_synthetic_diligent",
            "is_diligent_dir", "diligent_light_grid", "DILIGENT_WORLD_TO_CAMERA",
            "DEFAULT_SATURATION", "DEFAULT_DARK_FLOOR"]
@@ -94,20 +96,8 @@ def _read_rows(path: Path, ncol: int) -> np.ndarray:
 
 
 def _read_mask(path: Path) -> np.ndarray:
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise CaptureError(f"cannot open mask: {oiio.geterror() or 'corrupt'}", path)
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-    finally:
-        inp.close()
-    if data is None:
-        raise CaptureError("cannot read mask pixels", path)
-    arr = np.asarray(data).reshape(spec.height, spec.width, spec.nchannels)
-    return np.any(arr[..., :min(3, spec.nchannels)] > 0, axis=-1)
+    arr, _ = read_pixels(path, what="mask", fix="a DiLiGenT directory needs mask.png")
+    return np.any(arr[..., :3] > 0, axis=-1)
 
 
 def read_diligent(root: str | Path) -> DiligentData:

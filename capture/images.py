@@ -14,9 +14,62 @@ import OpenImageIO as oiio
 
 from brdfcap.errors import CaptureError
 
-__all__ = ["read_image", "write_image", "LINEAR_EXTENSIONS"]
+__all__ = ["read_pixels", "read_image", "to_rgb", "write_image", "LINEAR_EXTENSIONS"]
 
 LINEAR_EXTENSIONS = {".exr", ".tif", ".tiff", ".hdr", ".pfm"}
+
+
+def read_pixels(path: str | Path, what: str = "image",
+                fix: str = "check the [[images]].file path in capture.toml"
+                ) -> tuple[np.ndarray, str]:
+    """Read every channel of an image file as ``(H, W, C)`` float32, plus its stored pixel type.
+
+    The one OpenImageIO reader of the project: integer files come back scaled to [0, 1] by
+    OpenImageIO (``code / max``), float files as stored.
+
+    Parameters
+    ----------
+    path : str or Path
+        Image file.
+    what : str
+        What the file is, for the error message (``"image"``, ``"mask"``, ...).
+    fix : str
+        How to fix a missing file, for the error message.
+
+    Returns
+    -------
+    pixels, pixel_type : np.ndarray, str
+        Pixels and the file's pixel type as OpenImageIO names it (``"uint16"``, ``"half"``...).
+
+    Raises
+    ------
+    CaptureError
+        Missing, unreadable or corrupt file (message names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{what} file not found; {fix}", path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise CaptureError(f"cannot open {what}: {oiio.geterror() or 'unsupported or corrupt'}",
+                           path)
+    try:
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if data is None:
+        raise CaptureError(f"cannot read {what} pixels: {err or 'corrupt file'}", path)
+    arr = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    return arr, str(spec.format)
+
+
+def to_rgb(arr: np.ndarray) -> np.ndarray:
+    """``(H, W, C)`` -> ``(H, W, 3)``: grey (1 channel, or grey + alpha) repeated, alpha dropped."""
+    if arr.shape[2] < 3:
+        arr = np.repeat(arr[:, :, :1], 3, axis=2)
+    return np.ascontiguousarray(arr[:, :, :3])
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -29,30 +82,7 @@ def read_image(path: str | Path) -> np.ndarray:
     CaptureError
         Missing, unreadable or corrupt file (message names the file).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise CaptureError("image file not found; check the [[images]].file path in capture.toml",
-                           path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise CaptureError(f"cannot open image: {oiio.geterror() or 'unsupported or corrupt'}",
-                           path)
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        err = inp.geterror()
-    finally:
-        inp.close()
-    if data is None or (err and data is None):
-        raise CaptureError(f"cannot read pixels: {err or 'corrupt file'}", path)
-    arr = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-    if arr.shape[2] == 1:
-        arr = np.repeat(arr, 3, axis=2)
-    elif arr.shape[2] == 2:
-        arr = np.repeat(arr[:, :, :1], 3, axis=2)
-    else:
-        arr = arr[:, :, :3]
-    return np.ascontiguousarray(arr)
+    return to_rgb(read_pixels(path)[0])
 
 
 def write_image(path: str | Path, image: np.ndarray, colorspace: str = "lin_rec709",

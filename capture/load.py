@@ -9,7 +9,7 @@ import numpy as np
 from brdfcap.errors import CaptureError
 
 from .config import load_config
-from .images import LINEAR_EXTENSIONS, read_image
+from .images import LINEAR_EXTENSIONS, read_image, read_pixels, to_rgb
 from .types import Capture, CaptureConfig, ImageSpec, View
 
 __all__ = ["load_capture", "linearise_view", "read_integer_image", "INTEGER_EXTENSIONS"]
@@ -27,28 +27,11 @@ def read_integer_image(path: str | Path) -> tuple[np.ndarray, int]:
     CaptureError
         Missing/corrupt file, or fewer than 16 bits per channel.
     """
-    import OpenImageIO as oiio
-
-    path = Path(path)
-    if not path.is_file():
-        raise CaptureError("image file not found; check the [[images]].file path", path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise CaptureError(f"cannot open image: {oiio.geterror() or 'corrupt'}", path)
-    try:
-        spec = inp.spec()
-        fmt = spec.format
-        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-    finally:
-        inp.close()
-    if str(fmt) != "uint16":
+    arr, fmt = read_pixels(path, fix="check the [[images]].file path")
+    if fmt != "uint16":
         raise CaptureError(f"integer image has pixel type {fmt}; only 16-bit linear images are "
                            "accepted (an 8-bit PNG is display-encoded: convert to EXR)", path)
-    if data is None:
-        raise CaptureError("cannot read pixels (corrupt file)", path)
-    arr = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-    arr = np.repeat(arr[..., :1], 3, axis=2) if arr.shape[2] < 3 else arr[..., :3]
-    return np.ascontiguousarray(arr), 65535
+    return to_rgb(arr), 65535
 
 
 def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
