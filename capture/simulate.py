@@ -120,7 +120,8 @@ def load_scene(path: str | Path) -> Scene:
             from brdfcap.fit import envmap
 
             lmax = int(light.get("probe_lmax", 8))
-            light_sh = envmap.project_probe_file(path.parent / light["probe"], lmax).numpy()
+            probe = envmap.envmap_sh_from_file(path.parent / light["probe"], lmax)
+            light_sh = probe.coeffs.double().numpy()[:, :3]
         else:
             name = light.get("sh", "grace-rh2001")
             if name not in SH_PRESETS:

@@ -129,46 +129,21 @@ class EnvmapSH:
 def read_envmap(path: str | Path) -> torch.Tensor:
     """Read a lat-long map (Radiance ``.hdr``, OpenEXR, ...) through OpenImageIO.
 
-    Returns ``(H, W, C)`` float64, linear values as stored (``C`` = file channels).
+    Returns ``(H, W, C)`` float64, linear values as stored (``C`` = file channels). The file
+    is read by :func:`brdfcap.capture.images.read_pixels`, the project's one image reader.
     """
-    import OpenImageIO as oiio
+    from brdfcap.capture.images import read_pixels
 
-    from brdfcap.errors import BrdfcapError
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise BrdfcapError(f"cannot open environment map: {oiio.geterror()}", path)
-    try:
-        spec = inp.spec()
-        pix = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-    finally:
-        inp.close()
-    if pix is None:
-        raise BrdfcapError("cannot read pixels of environment map", path)
-    arr = np.asarray(pix, dtype=np.float64).reshape(spec.height, spec.width, spec.nchannels)
-    return torch.from_numpy(arr.copy())
+    arr, _ = read_pixels(path, what="environment map", fix="check the light-probe path")
+    return torch.from_numpy(arr.astype(np.float64))
 
 
 def write_envmap(path: str | Path, image: torch.Tensor) -> None:
-    """Write ``(H, W, C)`` linear float data as ``.hdr`` / ``.exr`` through OpenImageIO."""
-    import OpenImageIO as oiio
+    """Write ``(H, W, C)`` linear float data as ``.hdr`` / ``.exr`` (atomically, through
+    :func:`brdfcap.capture.images.write_image`)."""
+    from brdfcap.capture.images import write_image
 
-    from brdfcap.errors import BrdfcapError
-
-    arr = np.ascontiguousarray(image.detach().cpu().to(torch.float32).numpy())
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    h, w, c = arr.shape
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise BrdfcapError(f"no OpenImageIO writer for this file: {oiio.geterror()}", path)
-    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
-    if not out.open(str(path), spec):
-        raise BrdfcapError(f"cannot open for writing: {out.geterror()}", path)
-    ok = out.write_image(arr)
-    out.close()
-    if not ok:
-        raise BrdfcapError(f"cannot write: {out.geterror()}", path)
+    write_image(path, image.detach().cpu().to(torch.float32).numpy())
 
 
 # --------------------------------------------------------------------------------------------

@@ -280,3 +280,22 @@ def test_run_on_diligent_layout_hints_at_import(tmp_path):
     (tmp_path / "light_directions.txt").write_text("0 0 1\n")
     res = _invoke("run", tmp_path, "--out", tmp_path / "o")
     _one_line_error(res, "import-diligent")
+
+
+def test_probe_lit_scene_round_trip(tmp_path):
+    """A scene lit by a real HDR light probe (shared/reference/probes/uffizi.hdr, projected to
+    SH by the simulator) comes back through the pipeline: bands 0-2 within 1% of L00."""
+    from conftest import REFERENCE
+
+    from brdfcap.fit.envmap import envmap_sh_from_file
+
+    probe = REFERENCE / "probes" / "uffizi.hdr"
+    (tmp_path / "s.toml").write_text(scene_text(
+        width=64, lighting=f'kind = "environment"\nprobe = "{probe}"\nprobe_lmax = 8'))
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    truth = envmap_sh_from_file(probe, 8).coeffs.double()[:9, :3]
+    out = run_capture(cap, tmp_path / "out", RunOptions(lmax=4))
+    est = out.lighting.coefficients[:9]
+    assert ((est - truth) / truth[0]).abs().max() < 0.01
+    gt = json.loads((cap / "ground_truth.json").read_text())
+    assert gt["lighting"]["lmax"] == 8
