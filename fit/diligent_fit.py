@@ -43,7 +43,7 @@ P_l(a·b)`` turns this into a Legendre series in ``x = r·ωi``:
 so ``ρ̂_l`` of the specular part (samples with the fitted diffuse term subtracted) is measured
 by weighted linear least squares on Legendre polynomials, band by band conditioning reported as
 for the lighting (:mod:`brdfcap.fit.lighting`). The analytic ``ρ̂_l`` of the fitted Phong lobe
-is computed by Gauss–Legendre quadrature for comparison.
+comes from :func:`brdfcap.fit.filters.phong_filter` (exact recurrence) for comparison.
 """
 
 from __future__ import annotations
@@ -55,6 +55,8 @@ import numpy as np
 import torch
 
 from brdfcap.errors import FitError
+
+from .filters import lambda_l, phong_filter
 
 __all__ = ["phong_radiance", "PhongFit", "fit_lambert_phong", "BrdfSH", "measure_brdf_sh",
            "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX"]
@@ -310,26 +312,17 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
 def phong_rho_hat(ks, s: float, lmax: int) -> np.ndarray:
     r"""Analytic SH-domain ``ρ̂_l`` of the reflection-space Phong lobe ``k_s (s+1)/(2π) x_+^s``.
 
-    ``ρ̂_l = sqrt(4π/(2l+1)) · (2l+1)/2 ∫_0^1 k_s (s+1)/(2π) x^s P_l(x) dx`` (Legendre coefficient
-    divided by ``sqrt((2l+1)/(4π))``, module docstring), in closed form by the recursion of
-    ``∫_0^1 x^s P_l(x) dx``.
+    ``ρ̂_l = Λ_l^{-1} · k_s (s+1) ∫_0^1 x^s P_l(x) dx`` with ``Λ_l = sqrt(4π/(2l+1))`` (module
+    docstring): :func:`brdfcap.fit.filters.phong_filter` returns the multiplier ``Λ_l ρ̂_l``
+    of the unit lobe (exact ratio recurrence, Gradshteyn & Ryzhik 7.126.2), divided here by
+    :func:`brdfcap.fit.filters.lambda_l` and scaled by ``k_s``.
 
     Returns
     -------
     np.ndarray
         ``(lmax+1, C)``.
     """
-    # I_l = ∫_0^1 x^s P_l(x) dx: I_0 = 1/(s+1), I_1 = 1/(s+2), I_l = (s-l+2)/(s+l+1) I_{l-2}
-    # (from Bonnet's recursion and integration by parts; Gradshteyn & Ryzhik 7.126.2)
-    il = np.zeros(lmax + 1)
-    il[0] = 1.0 / (s + 1.0)
-    if lmax >= 1:
-        il[1] = 1.0 / (s + 2.0)
-    for l in range(2, lmax + 1):
-        il[l] = (s - l + 2.0) / (s + l + 1.0) * il[l - 2]
-    ls = np.arange(lmax + 1)
-    gl = (2 * ls + 1) / 2.0 * (s + 1.0) / (2.0 * math.pi) * il
-    rho = gl / np.sqrt((2 * ls + 1) / (4 * math.pi))
+    rho = (phong_filter(float(s), lmax) / lambda_l(lmax)).numpy()
     return rho[:, None] * np.atleast_1d(_np(ks))[None, :]
 
 
