@@ -56,6 +56,7 @@ import torch
 
 from brdfcap.errors import FitError
 
+from .brdf_models import BRDFSpec, render_directional
 from .filters import lambda_l, phong_filter
 
 __all__ = ["phong_radiance", "PhongFit", "fit_lambert_phong", "BrdfSH", "measure_brdf_sh",
@@ -78,6 +79,9 @@ def _np(x) -> np.ndarray:
 def phong_radiance(normal, wo, wi, irradiance, kd, ks, s: float) -> np.ndarray:
     """Radiance of the Lambertian + reflection-space Phong model (module docstring).
 
+    A NumPy front end to :func:`brdfcap.fit.brdf_models.render_directional` with a ``"phong"``
+    :class:`~brdfcap.fit.brdf_models.BRDFSpec` that also takes a per-sample ``kd``.
+
     Parameters
     ----------
     normal, wo, wi : array_like
@@ -96,15 +100,15 @@ def phong_radiance(normal, wo, wi, irradiance, kd, ks, s: float) -> np.ndarray:
     np.ndarray
         ``(N, C)`` radiance.
     """
-    n, o, i = _np(normal), _np(wo), _np(wi)
-    e = _np(irradiance)
-    cos_i = np.einsum("ij,ij->i", n, i)
-    r = 2.0 * np.einsum("ij,ij->i", n, o)[:, None] * n - o
-    x = np.einsum("ij,ij->i", r, i)
-    lit = cos_i > 0
-    dif = np.where(lit, cos_i, 0.0)[:, None] / math.pi
-    spec = np.where(lit & (x > 0), np.power(np.clip(x, 0.0, 1.0), s), 0.0)[:, None]
-    return e * (_np(kd) * dif + _np(ks) * (s + 1.0) / (2.0 * math.pi) * spec)
+    n, o, i, e = (torch.tensor(_np(a)) for a in (normal, wo, wi, irradiance))  # copies
+    nch = e.shape[-1]
+    # kd may vary per sample but BRDFSpec.kd is (C,): render the diffuse term at unit albedo
+    dif = render_directional(BRDFSpec("lambertian", kd=torch.ones(nch, dtype=torch.float64)),
+                             n, o, i, e).numpy()
+    lobe = render_directional(BRDFSpec("phong", kd=torch.zeros(nch, dtype=torch.float64),
+                                       ks=torch.tensor(_np(ks)), s=float(s)),
+                              n, o, i, e).numpy()
+    return _np(kd) * dif + lobe
 
 
 @dataclass
