@@ -1,7 +1,14 @@
 r"""Parametric and SH-domain BRDF measurement under known directional lights.
 
-Written for photometric-stereo captures (DiLiGenT layout, issue 8); to be merged with the
-inverse-rendering modules of issue 6 (``fit/parametric.py``) once both exist.
+Written for photometric-stereo captures (DiLiGenT layout, issue 8). The forward model and the
+analytic Phong filter are those of :mod:`brdfcap.fit.brdf_models` and
+:mod:`brdfcap.fit.filters`. The two fits stay separate from issue 6's:
+:func:`fit_lambert_phong` has one albedo per pixel (``fit/parametric.py`` fits one ``k_d``), and
+:func:`measure_brdf_sh` does not go through :func:`brdfcap.fit.solve.solve_wls` /
+:func:`brdfcap.fit.conditioning.band_statistics` because it equilibrates each channel's columns
+before the eigenvalue cut, reports sandwich rather than ``σ² G⁺`` standard errors, and flags a
+band against its own ``|ρ̂_l|`` rather than ``|x_0|``, so the shared path would change the flagged
+bands and ``results.json``.
 
 Model: Lambertian diffuse + reflection-space Phong lobe
 --------------------------------------------------------
@@ -331,7 +338,11 @@ def phong_rho_hat(ks, s: float, lmax: int) -> np.ndarray:
 
 
 def _legendre(x: np.ndarray, lmax: int) -> np.ndarray:
-    """``P_0..P_lmax`` at ``x`` by Bonnet's recursion, ``(lmax+1, len(x))`` float64."""
+    """``P_0..P_lmax`` at ``x`` by Bonnet's recursion, ``(lmax+1, len(x))`` float64.
+
+    Unnormalised ``P_l``; :func:`brdfcap.fit.sh.legendre_normalized` returns
+    ``sqrt((2l+1)/(4π)) P_l`` by a different recurrence (equal to ~1e-14, not bit for bit).
+    """
     p = np.zeros((lmax + 1,) + x.shape)
     p[0] = 1.0
     if lmax >= 1:
