@@ -44,7 +44,7 @@ from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import band_statistics, noise_level
 from .lighting import SHFit
 from .sh import band_of_index, real_sh
-from .solve import LinearSolution, noise_weights, solve_wls
+from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
 
 __all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL"]
 
@@ -151,13 +151,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     BilinearFit
     """
     f64 = torch.float64
-    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
-    r = torch.nn.functional.normalize(reflected.to(f64), dim=-1)
-    b = radiance.to(f64)
-    ok = torch.isfinite(n).all(-1) & torch.isfinite(r).all(-1)
-    n = torch.where(ok[:, None], n, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
-    r = torch.where(ok[:, None], r, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
-    b = torch.where(ok[:, None], b, torch.full_like(b, math.nan))
+    n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
     var = None if variance is None else variance.to(f64)
     w, src = noise_weights(b, var)
     w = torch.where(torch.isfinite(b), w, torch.zeros_like(w))

@@ -32,7 +32,7 @@ from .brdf_models import diffuse_filter
 from .conditioning import band_statistics, noise_level
 from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
-from .solve import LinearSolution, noise_weights, solve_wls
+from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
 
 __all__ = ["BRDFSHFit", "fit_brdf_sh", "load_known_lighting", "fit_brdf_parametric",
            "ParametricFit", "fit_brdf_isotropic", "isotropic_design", "local_frames"]
@@ -108,13 +108,7 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         ``filter[l]`` is ``Λ_l ρ̂_l`` (R&H 2001); ``ρ̂_l = filter[l] / Λ_l``.
     """
     f64 = torch.float64
-    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
-    r = torch.nn.functional.normalize(reflected.to(f64), dim=-1)
-    b = radiance.to(f64)
-    ok = torch.isfinite(n).all(-1) & torch.isfinite(r).all(-1)
-    n = torch.where(ok[:, None], n, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
-    r = torch.where(ok[:, None], r, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
-    b = torch.where(ok[:, None], b, torch.full_like(b, math.nan))
+    n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
     if b.shape[0] == 0:
         raise FitError("no samples to fit")
     L = light_sh.to(f64).to(n.device)

@@ -49,7 +49,8 @@ import torch
 
 from brdfcap.errors import FitError
 
-__all__ = ["LinearSolution", "solve_wls", "noise_weights", "default_band_penalty",
+__all__ = ["LinearSolution", "solve_wls", "noise_weights", "drop_nonfinite_directions",
+           "default_band_penalty",
            "REGULARIZATION_RULES", "EIG_RTOL",
            "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID"]
 
@@ -140,6 +141,36 @@ def noise_weights(radiance: torch.Tensor, variance: torch.Tensor | None
     w = 1.0 / var
     w = torch.where(torch.isfinite(w) & (var > 0), w, torch.zeros_like(w))
     return w, "capture noise model (inflated by residual chi2 > 1)"
+
+
+def drop_nonfinite_directions(normal: torch.Tensor, reflected: torch.Tensor,
+                              radiance: torch.Tensor
+                              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Normalised float64 directions, with the rows where either one is not finite removed.
+
+    Parameters
+    ----------
+    normal, reflected : torch.Tensor
+        ``(N, 3)`` directions, same frame (normalised here).
+    radiance : torch.Tensor
+        ``(N, C)`` observations.
+
+    Returns
+    -------
+    tuple
+        ``(normal, reflected, radiance)`` float64. A removed row keeps its place: both
+        directions become ``+z`` (so its design row stays finite) and its radiance NaN (so
+        :func:`solve_wls` gives it weight 0).
+    """
+    f64 = torch.float64
+    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
+    r = torch.nn.functional.normalize(reflected.to(f64), dim=-1)
+    b = radiance.to(f64)
+    ok = torch.isfinite(n).all(-1) & torch.isfinite(r).all(-1)
+    n = torch.where(ok[:, None], n, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
+    r = torch.where(ok[:, None], r, torch.tensor([0.0, 0.0, 1.0], dtype=f64))
+    b = torch.where(ok[:, None], b, torch.full_like(b, math.nan))
+    return n, r, b
 
 
 def _design_chunks(design, n: int, chunk: int):
