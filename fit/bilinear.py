@@ -182,15 +182,28 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     L = torch.zeros(k, nch, dtype=f64)
     history: list[float] = []
     converged = False
+
+    def _lighting_normal(c, kd_c, fk_):
+        """Weighted normal matrix and rhs of channel c's lighting, design kd_c yn + yr * fk_."""
+        g = (kd_c ** 2 * gnn[c] + kd_c * (gnr[c] * fk_[None, :] + gnr[c].T * fk_[:, None])
+             + grr[c] * fk_[:, None] * fk_[None, :])
+        return g, kd_c * rn[c] + fk_ * rr[c]
+
+    def _rss(L_, kd_, f_):
+        """Weighted RSS from the Grams."""
+        fk_ = S @ f_
+        tot = 0.0
+        for c in range(nch):
+            g, rhs = _lighting_normal(c, kd_[c], fk_)
+            tot += float(bwb[c] - 2 * L_[:, c] @ rhs + L_[:, c] @ g @ L_[:, c])
+        return tot
+
     it = 0
     for it in range(1, max_iter + 1):
         fk = S @ f  # (K,) filter per coefficient
         # step A: lighting per channel, design a = kd yn + yr * fk
         for c in range(nch):
-            g = (kd[c] ** 2 * gnn[c] + kd[c] * (gnr[c] * fk[None, :] + gnr[c].T * fk[:, None])
-                 + grr[c] * fk[:, None] * fk[None, :])
-            rhs = kd[c] * rn[c] + fk * rr[c]
-            L[:, c] = _lstsq(g, rhs)
+            L[:, c] = _lstsq(*_lighting_normal(c, kd[c], fk))
         # step B: (f_1.., kd_c) jointly over channels, f_0 = 1 fixed (scale)
         p = lb + nch  # unknowns: f_0..f_lb (f_0 then moved to the rhs), kd_0..kd_C-1
         G = torch.zeros(p, p, dtype=f64)
@@ -213,14 +226,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         x = _lstsq(G, R)
         f = torch.cat([torch.ones(1, dtype=f64), x[:lb]])
         kd = x[lb:]
-        # weighted RSS from the Grams
-        fk = S @ f
-        rss = 0.0
-        for c in range(nch):
-            g = (kd[c] ** 2 * gnn[c] + kd[c] * (gnr[c] * fk[None, :] + gnr[c].T * fk[:, None])
-                 + grr[c] * fk[:, None] * fk[None, :])
-            rhs = kd[c] * rn[c] + fk * rr[c]
-            rss += float(bwb[c] - 2 * L[:, c] @ rhs + L[:, c] @ g @ L[:, c])
+        rss = _rss(L, kd, f)
         history.append(rss)
         if len(history) > 1 and abs(history[-2] - rss) <= tol * max(abs(history[-2]), 1e-300):
             converged = True
@@ -231,16 +237,6 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
 
     # Gauss-Newton (Levenberg-Marquardt) on all unknowns from the same Grams: ALS is
     # slow in the bilinear "swamps"; GN converges quadratically near the solution.
-    def _rss(L_, kd_, f_):
-        fk_ = S @ f_
-        tot = 0.0
-        for c in range(nch):
-            g = (kd_[c] ** 2 * gnn[c] + kd_[c] * (gnr[c] * fk_[None, :] + gnr[c].T * fk_[:, None])
-                 + grr[c] * fk_[:, None] * fk_[None, :])
-            rhs = kd_[c] * rn[c] + fk_ * rr[c]
-            tot += float(bwb[c] - 2 * L_[:, c] @ rhs + L_[:, c] @ g @ L_[:, c])
-        return tot
-
     def _hessian(L, kd, f):
         fk = S @ f
         H = torch.zeros(np_, np_, dtype=f64)
@@ -248,8 +244,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         off = nch * k
         for c in range(nch):
             Lc = L[:, c]
-            ga = (kd[c] ** 2 * gnn[c] + kd[c] * (gnr[c] * fk[None, :] + gnr[c].T * fk[:, None])
-                  + grr[c] * fk[:, None] * fk[None, :])
+            ga, _ = _lighting_normal(c, kd[c], fk)
             sl = slice(c * k, (c + 1) * k)
             H[sl, sl] = ga
             # prediction projections: yn^T W pred, yr^T W pred
