@@ -36,6 +36,38 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def _flatten(d: dict, prefix: str = "") -> dict:
+    """Scalars of a nested record, keys joined with '.'; lists (poses, ...) are left out."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        elif not isinstance(v, (list, tuple)):
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _image_tables(images: list[dict]) -> tuple[list[str], dict[str, dict]]:
+    """Split the per-image records into the scalar linearisation columns and one table per
+    nested record (``registration``, ``geometry``, ...), each flattened to scalar columns."""
+    keys: list[str] = []
+    nested: dict[str, dict] = {}
+    for img in images:
+        for k, v in img.items():
+            if isinstance(v, dict):
+                nested.setdefault(k, {"cols": [], "rows": []})
+            elif not isinstance(v, (list, tuple)) and k not in keys:
+                keys.append(k)
+    for name, tab in nested.items():
+        for img in images:
+            flat = _flatten(img.get(name) or {})
+            for c in flat:
+                if c not in tab["cols"]:
+                    tab["cols"].append(c)
+            tab["rows"].append((img.get("file", ""), flat))
+    return keys, nested
+
+
 def _env() -> jinja2.Environment:
     return jinja2.Environment(
         loader=jinja2.FileSystemLoader(str(Path(__file__).parent / "templates")),
@@ -54,14 +86,10 @@ def render_report(inp: ReportInputs) -> str:
             l = int(math.isqrt(i))
             rows.append({"index": i, "l": l, "m": i - l * (l + 1),
                          "cells": list(zip(vals, [None if e is None else e for e in errs]))})
-    keys: list[str] = []
-    for img in r.get("images", []):
-        for k in img:
-            if k not in keys:
-                keys.append(k)
+    keys, per_view = _image_tables(r.get("images", []))
     tpl = _env().get_template("report.html")
     return tpl.render(r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings,
-                      coef_rows=rows, chain_keys=keys, fmt=_fmt,
+                      coef_rows=rows, chain_keys=keys, per_view=per_view, fmt=_fmt,
                       extras=inp.extras)
 
 

@@ -195,3 +195,13 @@ def test_capture_registration_end_to_end(bunny, tmp_path):
     assert len(s) > 0 and torch.isfinite(s.normal).all() and torch.isfinite(s.wi).all()
     assert cap.views[0].info["geometry"]["shadowed_pixels"] > 0
     assert geom.summary()["shadows"]["cast_shadow_rays"] is True
+    # the same capture through the whole pipeline: the report shows the per-view registration
+    # statistics (reprojection RMS, silhouette IoU) and the failed view's error
+    from brdfcap.pipeline import run_capture
+
+    res = run_capture(out, tmp_path / "run")
+    html = (tmp_path / "run" / "report.html").read_text()
+    assert "Per view: registration" in html
+    assert "refinement.silhouette_iou" in html and "pnp.reprojection_rms_px" in html
+    assert "at least 6" in html
+    assert res.results["images"][0]["registration"]["refinement"]["silhouette_iou"] > 0.99

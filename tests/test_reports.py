@@ -161,3 +161,21 @@ def test_bench_section_renders_in_report_and_index(run_out, tmp_path):
     recs = [CaptureRecord("a", "/c/a", str(tmp_path / "a"), "a", "ok", 1.0, summary={})]
     idx = render_index(BatchOutcome(recs, tmp_path), tmp_path, {"bench": sec})
     assert 'id="bench"' in idx and "brdfcap bench" in idx
+
+
+def test_per_view_tables_split_scalars_from_nested_records():
+    """The per-image table keeps scalar columns; nested records (registration, geometry) become
+    their own flattened tables, and pose matrices (lists) are left out of both."""
+    from brdfcap.reports.html import _image_tables
+
+    images = [
+        {"file": "a.exr", "exposure": 1.0,
+         "registration": {"pnp": {"reprojection_rms_px": 0.2}, "world_to_camera": [[1, 0]]}},
+        {"file": "b.exr", "exposure": 2.0, "registration": {"error": "too few points"}},
+    ]
+    keys, nested = _image_tables(images)
+    assert keys == ["file", "exposure"]
+    reg = nested["registration"]
+    assert reg["cols"] == ["pnp.reprojection_rms_px", "error"]
+    assert reg["rows"][0] == ("a.exr", {"pnp.reprojection_rms_px": 0.2})
+    assert reg["rows"][1] == ("b.exr", {"error": "too few points"})
