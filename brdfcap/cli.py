@@ -62,12 +62,14 @@ def _batch_echo(line: str) -> None:
 @click.option("--lmax", type=click.IntRange(0, 200), default=2, show_default=True,
               help="Highest SH band of the recovered lighting.")
 @click.option("--device", default="cpu", show_default=True, help="torch device for the fit.")
-@click.option("--problem", type=click.Choice(["auto", "lighting", "brdf", "both",
-                                              "aldrian-smith"]),
+@click.option("--problem", type=click.Choice(["auto", "lighting", "brdf", "brdf-isotropic",
+                                              "both", "decomposition", "aldrian-smith"]),
               default="auto", show_default=True,
               help="What to recover (docs/fitting.md): lighting with the BRDF known, the BRDF "
-                   "with the lighting known, both, or Aldrian & Smith's photometric model; auto "
-                   "= Lambertian lighting (environment) or albedo (directional).")
+                   "with the lighting known (radial, or view-dependent isotropic rho_lpq), both "
+                   "(bilinear, or R&H's microfacet decomposition with known source directions), "
+                   "or Aldrian & Smith's photometric model; auto = Lambertian lighting "
+                   "(environment) or albedo (directional).")
 @click.option("--brdf", type=click.Choice(["lambertian", "phong", "microfacet", "mirror"]),
               default=None, help="BRDF model (default: capture.toml [material].model).")
 @click.option("--rule", type=click.Choice(["gcv", "discrepancy", "none"]), default="gcv",

@@ -27,7 +27,7 @@ KNOWN_KEYS: dict[str, set[str]] = {
          "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor"},
     "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask", "frame_check"},
     "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},
-    "lighting": {"kind", "coefficients", "probe", "probe_lmax"},
+    "lighting": {"kind", "coefficients", "probe", "probe_lmax", "sources"},
     "images": {"file", "world_to_camera", "exposure", "light", "raw", "mask", "correspondences"},
     "noise": {"read", "gain", "relative"},
     "material": {"model", "albedo", "ks", "s", "sigma", "f0"},

@@ -121,6 +121,21 @@ def problem_lighting(samples, cfg, opts) -> ProblemResult:
     return ProblemResult(prediction=pred, lighting=fit, results=res, summary=summ)
 
 
+def _known_sh_lighting(cfg, opts, problem: str) -> torch.Tensor:
+    """Known environment lighting ``(K, C)`` from ``lighting.coefficients`` or ``.probe``."""
+    from .inverse_brdf import load_known_lighting
+
+    lt = cfg.raw.get("lighting") or {}
+    if "coefficients" in lt:
+        return load_known_lighting(lt["coefficients"], 0)
+    if "probe" in lt:  # lat-long HDR light probe, projected to SH (fit.envmap)
+        lmax_p = int(lt.get("probe_lmax", max(opts.brdf_lmax, opts.lmax)))
+        return load_known_lighting(cfg.root / lt["probe"], lmax_p)
+    raise FitError(f"problem '{problem}' under environment lighting needs the lighting known: "
+                   "add lighting.coefficients (SH, R&H 2001 real basis) or lighting.probe "
+                   "(lat-long HDR image) to capture.toml", cfg.toml_path)
+
+
 def problem_brdf(samples, cfg, opts) -> ProblemResult:
     """Problem 2: inverse BRDF with known lighting (distant lights or SH coefficients)."""
     if cfg.lighting_kind == "directional" or samples.wi is not None:
@@ -145,18 +160,9 @@ def problem_brdf(samples, cfg, opts) -> ProblemResult:
                 + ", ".join(f"{k} = {_fmt(v)} ± {_fmt(f.stderr[k])}"
                             for k, v in f.values.items()) + "."]
         return ProblemResult(prediction=pred, results=res, summary=summ)
-    from .inverse_brdf import fit_brdf_sh, load_known_lighting
+    from .inverse_brdf import fit_brdf_sh
 
-    lt = cfg.raw.get("lighting") or {}
-    if "coefficients" in lt:
-        light = load_known_lighting(lt["coefficients"], 0)
-    elif "probe" in lt:  # lat-long HDR light probe, projected to SH (fit.envmap)
-        lmax_p = int(lt.get("probe_lmax", max(opts.brdf_lmax, opts.lmax)))
-        light = load_known_lighting(cfg.root / lt["probe"], lmax_p)
-    else:
-        raise FitError("problem 'brdf' under environment lighting needs the lighting known: "
-                       "add lighting.coefficients (SH, R&H 2001 real basis) or lighting.probe "
-                       "(lat-long HDR image) to capture.toml", cfg.toml_path)
+    light = _known_sh_lighting(cfg, opts, "brdf")
     fit = fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light,
                       opts.brdf_lmax, variance=samples.variance, rule=opts.rule)
     from .brdf_models import diffuse_filter
@@ -211,8 +217,104 @@ def problem_aldrian_smith(samples, cfg, opts) -> ProblemResult:
                          summary=res.summary())
 
 
-PROBLEMS = {"lighting": problem_lighting, "brdf": problem_brdf, "both": problem_both,
-            "aldrian-smith": problem_aldrian_smith}
+def problem_brdf_isotropic(samples, cfg, opts) -> ProblemResult:
+    """Problem 2, view-dependent: isotropic ``ρ̂_lpq`` (R&H 2001 eq. 16) under known SH lighting.
+
+    Bands ``l, p ≤ --brdf-lmax``; recovered by :func:`brdfcap.fit.inverse_brdf.fit_brdf_isotropic`
+    with per-band (in ``l``) conditioning.
+    """
+    from .inverse_brdf import fit_brdf_isotropic, isotropic_design
+
+    _need_env(cfg)
+    light = _known_sh_lighting(cfg, opts, "brdf-isotropic")
+    lmax = opts.brdf_lmax
+    fit = fit_brdf_isotropic(samples.normal, samples.wo, samples.radiance, light, lmax,
+                             variance=samples.variance, rule=opts.rule)
+    a, idx = isotropic_design(samples.normal, samples.wo, light, lmax, lmax)
+    sol = fit["solution"]
+    pred = torch.einsum("ncj,jc->nc", a, sol.coefficients)
+    coeffs = [{"l": l, "p": p, "q": k, "value": sol.coefficients[j].tolist(),
+               "stderr": [_fin(v) for v in sol.stderr[j].tolist()]}
+              for j, (l, p, k) in enumerate(idx)]
+    res = {"brdf": {"model": "sh-isotropic", "parameters": {"lmax": lmax, "pmax": lmax},
+                    "isotropic": {"convention": "rho_lpq, R&H 2001 eq. 16, indexed [l, p, |q|]",
+                                  "coefficients": coeffs, "bands": fit["bands"],
+                                  "ill_conditioned_from_l": fit["ill_conditioned_from_l"]},
+                    "source": "fitted (known SH lighting)"},
+           "conditioning": {"definition": ILL_CONDITIONING_DEFINITION,
+                            "brdf": {"measured": fit["ill_conditioned_from_l"]}}}
+    summ = [f"Problem 2 (isotropic BRDF ρ̂_lpq, known SH lighting): {len(idx)} coefficients per "
+            f"channel to l, p = {lmax}; first ill-conditioned band "
+            f"{fit['ill_conditioned_from_l']}."]
+    return ProblemResult(prediction=pred, results=res, summary=summ)
+
+
+def problem_decomposition(samples, cfg, opts) -> ProblemResult:
+    """Problem 3 for microfacet materials: R&H's ``B = B_d + B_s,slow + B_s,fast``.
+
+    The material (``[material]`` microfacet: ``albedo``, ``f0``, ``sigma``) and the directions of
+    the bright sources (``lighting.sources``) are known; the slow SH lighting to ``--lmax`` and
+    the source powers are recovered (:func:`brdfcap.fit.decomposition.fit_decomposed_lighting`).
+    """
+    from .decomposition import fit_decomposed_lighting, microfacet_decomposition
+
+    _need_env(cfg)
+    mat = cfg.raw.get("material") or {}
+    lt = cfg.raw.get("lighting") or {}
+    if mat.get("model") != "microfacet" or "sigma" not in mat:
+        raise FitError("problem 'decomposition' needs [material] model = 'microfacet' with "
+                       "albedo, f0 and sigma", cfg.toml_path)
+    if not lt.get("sources"):
+        raise FitError("problem 'decomposition' needs lighting.sources = [[x, y, z], ...]: "
+                       "the directions toward the bright (fast) light sources", cfg.toml_path)
+    dirs = torch.nn.functional.normalize(torch.tensor(lt["sources"], dtype=torch.float64),
+                                         dim=-1)
+    nch = samples.radiance.shape[1]
+    kd = torch.as_tensor(mat.get("albedo", [1.0] * nch), dtype=torch.float64)
+    f0 = torch.as_tensor(mat.get("f0", [0.04] * nch), dtype=torch.float64)
+    sigma = float(mat["sigma"])
+    slow, power, sol, rows, ill = fit_decomposed_lighting(
+        samples.normal, samples.reflected, samples.radiance, dirs, opts.lmax, kd, f0, sigma,
+        variance=samples.variance, rule=opts.rule)
+    k = slow.shape[0]
+    parts = microfacet_decomposition(samples.normal, samples.reflected, slow, dirs, power, kd,
+                                     f0, sigma)
+    share = {name: float(t.abs().sum() / parts.total.abs().sum().clamp_min(1e-300))
+             for name, t in (("diffuse", parts.diffuse), ("specular_slow", parts.specular_slow),
+                             ("specular_fast", parts.specular_fast))}
+    res = {"lighting": {"lmax": opts.lmax, "sh": "rh2001-real", "frame": "world",
+                        "coefficients": slow.tolist(), "stderr": _fin_list(sol.stderr[:k]),
+                        "determined": sol.determined[:k].tolist(),
+                        "ill_conditioned_from_l": ill if ill is None or ill <= opts.lmax
+                        else None,
+                        "ill_conditioning_definition": ILL_CONDITIONING_DEFINITION,
+                        "bands": rows, "scale_fixing": "material known (kd, F0, sigma)",
+                        "chi2_reduced": sol.chi2_reduced.tolist(),
+                        "noise_source": sol.noise_source,
+                        "regularization": {"rule": sol.rule,
+                                           "lambda_rel": sol.lam_rel.tolist()},
+                        "bands_note": f"band {opts.lmax + 1} of 'bands' is the pseudo-band of "
+                                      "the bright sources",
+                        "part": "slow (band-limited) lighting; bright sources below",
+                        "sources": {"directions": dirs.tolist(), "power": power.tolist(),
+                                    "stderr": _fin_list(sol.stderr[k:])}},
+           "brdf": {"model": "microfacet", "parameters": {"kd": kd.tolist(), "f0": f0.tolist(),
+                                                          "sigma": sigma},
+                    "source": "capture.toml [material] (known)"},
+           "decomposition": {"share_of_radiance": share,
+                             "validity": "slow part valid for l << 1/sigma (R&H seed eq. 6)"},
+           "conditioning": {"definition": ILL_CONDITIONING_DEFINITION,
+                            "lighting": {"measured": ill}}}
+    summ = [f"R&H decomposition (microfacet σ = {sigma:g}): slow lighting to l = {opts.lmax} and "
+            f"{dirs.shape[0]} source power(s); share of radiance: diffuse "
+            f"{share['diffuse']:.2f}, slow specular {share['specular_slow']:.2f}, fast specular "
+            f"{share['specular_fast']:.2f}."]
+    return ProblemResult(prediction=parts.total, results=res, summary=summ)
+
+
+PROBLEMS = {"lighting": problem_lighting, "brdf": problem_brdf,
+            "brdf-isotropic": problem_brdf_isotropic, "both": problem_both,
+            "decomposition": problem_decomposition, "aldrian-smith": problem_aldrian_smith}
 
 
 def solve_problem(name: str, samples, cfg, opts) -> ProblemResult:
