@@ -23,8 +23,8 @@ from brdfcap.capture.load import load_capture
 from brdfcap.capture.types import Capture
 from brdfcap.errors import FitError
 from brdfcap.fit.filters import lambertian_filter
-from brdfcap.fit.lighting import (REL_STDERR_LIMIT, RESOLUTION_LIMIT, AlbedoFit, SHFit,
-                                  fit_albedo_directional, fit_lighting_lambertian)
+from brdfcap.fit.lighting import (AlbedoFit, SHFit, fit_albedo_directional,
+                                  fit_lighting_lambertian)
 from brdfcap.fit.render import lambertian_radiance_directional, lambertian_radiance_sh
 from brdfcap.fit.sh import band_of_index
 from brdfcap.reconstruct.geometry import Geometry, Samples, build_samples, compute_capture_geometry
@@ -36,15 +36,6 @@ __all__ = ["RunOptions", "RunContext", "RunOutcome", "run_capture", "RESULTS_FOR
            "versions"]
 
 RESULTS_FORMAT = "brdfcap-results/1"
-
-ILL_CONDITIONING_DEFINITION = (
-    f"A band l is ill-conditioned when any of its coefficients is not resolved by the data "
-    f"(model-resolution diagonal < {RESOLUTION_LIMIT}, e.g. bands whose filter Â_l vanishes) or "
-    f"when the median standard error of its coefficients exceeds {REL_STDERR_LIMIT:g} × |L00| "
-    f"(signal-to-noise of a unit-amplitude band below 1: the data-space form of Ramamoorthi & "
-    f"Hanrahan's Λ_l ρ̂_l < ε criterion)."
-)
-
 
 @dataclass
 class RunOptions:
@@ -262,21 +253,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         "outputs": {"report": "report.html", "coefficients": "coefficients.csv",
                     "config": "config.json"},
     }
-    if problem_res is not None:
-        pass  # filled from the problem's own results below
-    elif lighting is not None:
-        results["lighting"] = {
-            "lmax": lighting.lmax, "sh": "rh2001-real", "frame": "world",
-            "coefficients": lighting.coefficients.tolist(),
-            "stderr": [[_finite_or_none(e) for e in row] for row in lighting.stderr.tolist()],
-            "determined": lighting.determined.tolist(),
-            "ill_conditioned_from_l": lighting.ill_conditioned_from_l,
-            "ill_conditioning_definition": ILL_CONDITIONING_DEFINITION,
-            "bands": lighting.bands,
-            "chi2_reduced": lighting.chi2_reduced.tolist(),
-            "noise_source": lighting.noise_source,
-            "scale_fixing": lighting.scale_fixing,
-        }
+    if problem_res is None and lighting is not None:
         results["brdf"]["parameters"] = {
             "albedo": albedo.tolist(),
             "albedo_source": "capture.toml [material].albedo" if alb_known is not None
@@ -294,7 +271,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     if problem_res is not None:
         results.update(problem_res.results)
     elif lighting is not None:
-        results["lighting"] = {**lighting_json(lighting), **results["lighting"]}
+        results["lighting"] = lighting_json(lighting)
         results["conditioning"] = conditioning_json(lighting)
 
     # figures: per-view images of observed / re-rendered
