@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .filters import lambertian_filter, phong_filter
+from .render import irradiance_sh
 
 __all__ = ["BRDF_MODELS", "BRDFSpec", "specular_filter", "diffuse_filter", "phong_sh_filter",
            "microfacet_sh_filter", "render_sh", "render_directional", "brdf_value",
@@ -125,8 +126,7 @@ def render_sh(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor,
     lmax = int(round(math.sqrt(k))) - 1
     band = band_of_index(lmax)
     L = light_sh.to(torch.float64)
-    out = (real_sh(normal.to(torch.float64), lmax) @ (diffuse_filter(lmax)[band][:, None] * L)
-           ) * spec.kd
+    out = irradiance_sh(normal, L) * (spec.kd / math.pi)  # diffuse: (kd/π) Σ Â_l L_lm Y_lm(n)
     if spec.model != "lambertian":
         fs = specular_filter(spec, lmax)[band]
         out = out + (real_sh(reflected.to(torch.float64), lmax) @ (fs[:, None] * L)
