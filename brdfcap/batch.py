@@ -9,7 +9,7 @@ itself when ``ROOT`` is a capture). Guarantees (``docs/batch.md``):
   ``OUT/index.html``/``OUT/batch.json``) and the others go on. A worker that dies (a crash in
   native code) is replaced; a capture that kills two workers is recorded as failed.
 - **Atomic outputs.** Every file is written to a temporary file in the same directory and
-  renamed (:mod:`brdfcap.atomic`); ``results.json`` is written last, so its presence means a
+  renamed (:mod:`brdfcap.core.atomic`); ``results.json`` is written last, so its presence means a
   complete run. Ctrl-C or ``kill`` (SIGTERM) stops the workers (they also die with the parent,
   ``PR_SET_PDEATHSIG``) and leaves only complete files behind.
 - **Skip unchanged.** ``results.json["provenance"]["hash"]`` is the SHA-256 of the capture's input
@@ -45,7 +45,7 @@ from typing import Any, Callable
 import tomllib
 
 from brdfcap import __version__
-from brdfcap.atomic import write_json_atomic
+from brdfcap.core.atomic import write_json_atomic
 
 __all__ = ["find_captures", "input_files", "hash_inputs", "code_version", "dependency_versions",
            "provenance", "config_record", "up_to_date", "CaptureRecord", "BatchOutcome",
@@ -356,7 +356,7 @@ def _clean_stale_tmp(out_dir: Path) -> None:
 
 
 def _error_record(exc: BaseException, capture_dir: Path) -> tuple[str, str, str]:
-    from brdfcap.errors import BrdfcapError
+    from brdfcap.core.errors import BrdfcapError
 
     if isinstance(exc, BrdfcapError):
         msg = str(exc)

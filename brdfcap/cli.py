@@ -1,6 +1,6 @@
 """Command-line interface: ``brdfcap run | simulate | demo | ...``.
 
-User errors (:class:`brdfcap.errors.BrdfcapError`) print one line naming the file and the
+User errors (:class:`brdfcap.core.errors.BrdfcapError`) print one line naming the file and the
 problem and exit with status 1; ``--debug`` shows the traceback instead.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 
 from brdfcap import __version__
-from brdfcap.errors import BrdfcapError
+from brdfcap.core.errors import BrdfcapError
 
 __all__ = ["main"]
 

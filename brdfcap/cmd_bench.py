@@ -567,7 +567,7 @@ def bench_for_report(cfg: BenchConfig | None = None) -> dict:
 
 def write_outputs(result: dict, out: Path, command: str) -> dict[str, Path]:
     """bench.json, bench.csv, bench.md, pareto.png and bench.html (self-contained)."""
-    from brdfcap.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
+    from brdfcap.core.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
     from brdfcap.reports.html import _env
 
     out.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from brdfcap.errors import BrdfcapError
+from brdfcap.core.errors import BrdfcapError
 
 __all__ = ["import_diligent_cmd"]
 
@@ -34,8 +34,7 @@ def import_diligent_cmd(obj, src: Path, out_capture: Path, no_copy: bool,
 
     Then run it with ``brdfcap run OUT_CAPTURE --out RESULTS``.
     """
-    from brdfcap.capture.diligent import (DEFAULT_DARK_FLOOR, DEFAULT_SATURATION,
-                                          import_diligent)
+    from brdfcap.capture.diligent import DEFAULT_DARK_FLOOR, DEFAULT_SATURATION, import_diligent
 
     try:
         out = import_diligent(

@@ -28,7 +28,7 @@ import click
 def envmap_sh_cmd(probe: Path, lmax: int, as_json: bool, out: Path | None, window: str,
                   quadrature: str) -> None:
     """Project the lat-long environment map PROBE (.hdr / .exr) onto real SH up to --lmax."""
-    from brdfcap.errors import BrdfcapError
+    from brdfcap.core.errors import BrdfcapError
     from brdfcap.fit.envmap import envmap_sh_from_file
 
     if not probe.is_file():

@@ -7,7 +7,6 @@ turns the outcome into ``results.json`` + ``report.html`` (both written atomical
 from __future__ import annotations
 
 import datetime as _dt
-import math
 import platform
 import time
 from dataclasses import asdict, dataclass, field
@@ -18,13 +17,13 @@ import numpy as np
 import torch
 
 from brdfcap import __version__
-from brdfcap.atomic import write_json_atomic
 from brdfcap.capture.load import load_capture
 from brdfcap.capture.types import Capture
-from brdfcap.errors import FitError
+from brdfcap.core.atomic import write_json_atomic
+from brdfcap.core.errors import FitError
+from brdfcap.core.jsonsafe import json_safe
 from brdfcap.fit.filters import lambertian_filter
-from brdfcap.fit.lighting import (AlbedoFit, SHFit, fit_albedo_directional,
-                                  fit_lighting_lambertian)
+from brdfcap.fit.lighting import AlbedoFit, SHFit, fit_albedo_directional, fit_lighting_lambertian
 from brdfcap.fit.render import lambertian_radiance_directional, lambertian_radiance_sh
 from brdfcap.fit.sh import band_of_index
 from brdfcap.reconstruct.geometry import Geometry, Samples, build_samples, compute_capture_geometry
@@ -94,28 +93,6 @@ def versions() -> dict[str, str]:
     return out
 
 
-def _finite_or_none(x):
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
-def _json_safe(obj):
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return _finite_or_none(float(obj))
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def _predict(samples: Samples, lighting: SHFit | None, albedo_fit: AlbedoFit | None,
              albedo: torch.Tensor) -> torch.Tensor:
     if lighting is not None:
@@ -160,7 +137,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
 
     Raises
     ------
-    brdfcap.errors.BrdfcapError
+    brdfcap.core.errors.BrdfcapError
         Any user-facing problem, with the file and the fix named.
     """
     opts = options or RunOptions()
@@ -330,7 +307,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     results["summary"] = summary
     timings["report"] = time.perf_counter() - t0
     results["timings_s"] = timings
-    results = _json_safe(results)
+    results = json_safe(results)
     report_path = write_report(out / "report.html",
                                ReportInputs(results=results, figures=figs, summary=summary,
                                             warnings=warnings, extras=ctx.report_extras))

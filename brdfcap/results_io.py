@@ -19,7 +19,7 @@ import math
 from functools import lru_cache
 from pathlib import Path
 
-from brdfcap.atomic import write_text_atomic
+from brdfcap.core.atomic import write_text_atomic
 
 __all__ = ["SCHEMA_PATH", "load_results_schema", "validate_results", "coefficient_rows",
            "coefficients_csv", "write_coefficients_csv", "CSV_COLUMNS"]

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import colour
 import numpy as np
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 __all__ = [
     "WORKING_SPACES",

@@ -1,21 +1,28 @@
 """Parse and validate ``capture.toml`` (format ``brdfcap/1``, see ``docs/capture-format.md``).
 
-Every problem raises :class:`brdfcap.errors.CaptureError` naming the file and the key; unknown
+Every problem raises :class:`brdfcap.core.errors.CaptureError` naming the file and the key; unknown
 keys are collected as warnings (never silently ignored).
 """
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomllib
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
-from .types import (CameraModel, CaptureConfig, Correspondences, DirectionalLight, ImageSpec,
-                    NoiseModel, PointLight)
+from .types import (
+    CameraModel,
+    CaptureConfig,
+    Correspondences,
+    DirectionalLight,
+    ImageSpec,
+    NoiseModel,
+    PointLight,
+)
 
 __all__ = ["load_config", "CAPTURE_FORMAT", "KNOWN_KEYS"]
 

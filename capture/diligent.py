@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 from .images import read_pixels
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 from .types import NoiseModel
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 __all__ = ["read_pixels", "read_image", "to_rgb", "write_image", "LINEAR_EXTENSIONS"]
 

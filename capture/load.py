@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 from .config import load_config
 from .images import LINEAR_EXTENSIONS, read_image, read_pixels, to_rgb

@@ -43,7 +43,7 @@ import numpy as np
 import rawpy
 from scipy import ndimage
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 from .colour import (
     CHROMATIC_ADAPTATIONS,

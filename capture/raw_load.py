@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 from .hdr import Exposure, merge_brackets
 from .raw import RawOptions, decode_raw

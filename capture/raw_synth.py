@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 from .colour import (
     DEFAULT_WORKING_SPACE,

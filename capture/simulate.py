@@ -10,16 +10,16 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tomllib
 import torch
-
-from brdfcap.errors import CaptureError
 from brdfcap.fit.datasets import SH_PRESETS
 from brdfcap.fit.render import lambertian_radiance_directional, lambertian_radiance_sh
+
+from brdfcap.core.errors import CaptureError
 
 from .images import write_image
 from .types import CameraModel, NoiseModel
@@ -233,7 +233,8 @@ def _scene_light(light: dict):
 def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | None,
                  cast_shadows: bool = False):
     """Render one view; returns ``(image, n_shadowed_pixels)``. Shadow rays are cast only when
-    ``cast_shadows`` (a non-convex mesh under a known light)."""
+    ``cast_shadows`` (a non-convex mesh under a known light).
+    """
     from brdfcap.reconstruct.camera import camera_rays
     from brdfcap.reconstruct.geometry import add_lighting, cast_view, light_at
 
@@ -290,7 +291,6 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     Returns the capture directory.
     """
     import open3d as o3d
-
     from brdfcap.reconstruct.geometry import _scene
     from brdfcap.reconstruct.mesh import load_mesh, uv_sphere
 

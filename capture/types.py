@@ -80,7 +80,8 @@ class PointLight:
 class Correspondences:
     """2D-3D correspondences of one image (``[[images]].correspondences``): pixel coordinates
     ``pixels (N, 2)`` as ``(u, v)`` in the continuous frame where pixel centres are at ``+0.5``,
-    and mesh/world ``points (N, 3)`` in world units."""
+    and mesh/world ``points (N, 3)`` in world units.
+    """
 
     pixels: np.ndarray
     points: np.ndarray

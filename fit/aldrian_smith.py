@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
 from .sh import band_of_index, real_sh

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import band_statistics, noise_level

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, render_directional
 from .filters import lambda_l, phong_filter

@@ -140,7 +140,8 @@ def read_envmap(path: str | Path) -> torch.Tensor:
 
 def write_envmap(path: str | Path, image: torch.Tensor) -> None:
     """Write ``(H, W, C)`` linear float data as ``.hdr`` / ``.exr`` (atomically, through
-    :func:`brdfcap.capture.images.write_image`)."""
+    :func:`brdfcap.capture.images.write_image`).
+    """
     from brdfcap.capture.images import write_image
 
     write_image(path, image.detach().cpu().to(torch.float32).numpy())

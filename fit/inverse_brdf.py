@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
 from .conditioning import band_statistics, noise_level

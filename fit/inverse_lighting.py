@@ -19,7 +19,7 @@ import math
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
 from .conditioning import band_statistics, noise_level, predicted_lstar

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .conditioning import REL_STDERR_LIMIT
 from .solve import EIG_RTOL, RESOLUTION_LIMIT, VARIANCE_FLOOR_REL, noise_weights

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, _specular_directional, directional_albedo, reciprocity_error
 from .solve import noise_weights

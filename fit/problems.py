@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDF_MODELS, BRDFSpec, render_directional, render_sh
 from .conditioning import ILL_CONDITIONING_DEFINITION

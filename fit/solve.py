@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from brdfcap.errors import FitError
+from brdfcap.core.errors import FitError
 
 __all__ = ["LinearSolution", "solve_wls", "noise_weights", "drop_nonfinite_directions",
            "default_band_penalty",

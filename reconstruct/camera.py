@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-
 from brdfcap.capture.types import CameraModel
 
 __all__ = ["camera_rays", "camera_center"]

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from brdfcap.capture.types import CameraModel, Capture
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 from .camera import camera_rays
 from .mesh import Mesh
@@ -354,7 +354,7 @@ def registration_options(config) -> dict:
     """``[registration]`` keys: ``refine`` (bool, default true: silhouette refinement where
     ``images[].mask`` is given) and ``shadows`` (``auto`` | ``always`` | ``never``).
     """
-    from brdfcap.errors import CaptureError
+    from brdfcap.core.errors import CaptureError
 
     tab = config.raw.get("registration", {}) if isinstance(config.raw, dict) else {}
     if not isinstance(tab, dict):

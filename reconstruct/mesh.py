@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 __all__ = ["Mesh", "ConvexityTest", "load_mesh", "mesh_from_arrays", "uv_sphere", "UNITS",
            "NORMAL_MODES", "units_scale", "convexity_test", "face_normals",

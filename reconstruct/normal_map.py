@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from brdfcap.capture.types import Capture
-from brdfcap.errors import GeometryError
+
+from brdfcap.core.errors import GeometryError
 
 from .camera import camera_rays
 from .geometry import GRAZING_COS, Geometry, ViewGeometry
@@ -101,7 +101,8 @@ def load_normal_map(path: str | Path, mask_path: str | Path | None = None,
         Unreadable file, wrong size, or no valid pixel.
     """
     from brdfcap.capture.images import read_image
-    from brdfcap.errors import CaptureError
+
+    from brdfcap.core.errors import CaptureError
 
     path = Path(path)
     try:

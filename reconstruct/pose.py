@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from brdfcap.capture.types import CameraModel
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 from .mesh import Mesh
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 from .mesh import Mesh
 

@@ -108,7 +108,8 @@ def brdf_slice_figure(meas):
 
 def brdf_sh_figure(sh):
     """Measured ``|ρ̂_l|`` ± std. error per band vs the fitted Phong lobe's analytic ``ρ̂_l``;
-    ill-conditioned bands shaded."""
+    ill-conditioned bands shaded.
+    """
     fig, ax = plt.subplots(figsize=(6.0, 3.4))
     ls = np.arange(sh.lmax + 1)
     for c in range(sh.rho_hat.shape[1]):
@@ -158,7 +159,8 @@ def attach_brdf_measurement(results: dict, figures: dict, meas, geometry,
                             out_dir: str | Path) -> None:
     """Write ``albedo_map.exr`` (+ std. error) into ``out_dir`` and add the BRDF measurement to
     ``results`` (``results["brdf"]``, the previous global-Lambertian record kept under
-    ``results["brdf"]["lambertian_global"]``) and its figures to ``figures``."""
+    ``results["brdf"]["lambertian_global"]``) and its figures to ``figures``.
+    """
     from brdfcap.capture.images import write_image
 
     out = Path(out_dir)

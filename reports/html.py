@@ -8,7 +8,7 @@ from pathlib import Path
 
 import jinja2
 
-from brdfcap.atomic import write_text_atomic
+from brdfcap.core.atomic import write_text_atomic
 
 __all__ = ["ReportInputs", "render_report", "write_report"]
 
@@ -49,7 +49,8 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 def _image_tables(images: list[dict]) -> tuple[list[str], dict[str, dict]]:
     """Split the per-image records into the scalar linearisation columns and one table per
-    nested record (``registration``, ``geometry``, ...), each flattened to scalar columns."""
+    nested record (``registration``, ``geometry``, ...), each flattened to scalar columns.
+    """
     keys: list[str] = []
     nested: dict[str, dict] = {}
     for img in images:

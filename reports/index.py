@@ -7,7 +7,7 @@ import math
 import os
 from pathlib import Path
 
-from brdfcap.atomic import write_text_atomic
+from brdfcap.core.atomic import write_text_atomic
 
 from .html import _env, _fmt
 

@@ -20,7 +20,7 @@ from brdfcap.capture.colour import (
 )
 from brdfcap.capture.raw_synth import CANON_EOS_6D_D65
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 TOL = {np.float32: 1e-5, np.float64: 1e-12}
 D65 = colour.xy_to_XYZ(colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"])
@@ -48,7 +48,8 @@ def test_camera_white_maps_to_D65_and_identity_camera():
 
 def test_canon_matrix_matches_dcraw_rgb_cam():
     """dcraw/LibRaw's rgb_cam for the EOS 6D (adobe_coeff 7034,-804,-1014,...): a second,
-    independent implementation of the same normalisation (values printed by LibRaw 0.22)."""
+    independent implementation of the same normalisation (values printed by LibRaw 0.22).
+    """
     rgb_cam = [[1.9125416, -1.0586561, 0.14611441], [-0.22485682, 1.646579, -0.42172217],
                [0.00986511, -0.5092886, 1.4994235]]
     np.testing.assert_allclose(matrix_camera_to_working(CANON_EOS_6D_D65), rgb_cam, atol=2e-3)

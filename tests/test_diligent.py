@@ -14,16 +14,20 @@ import shutil
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
-
 from brdfcap.capture.config import load_config
-from brdfcap.capture.diligent import (DILIGENT_WORLD_TO_CAMERA, import_diligent, read_diligent,
-                                      write_synthetic_diligent)
+from brdfcap.capture.diligent import (
+    DILIGENT_WORLD_TO_CAMERA,
+    import_diligent,
+    read_diligent,
+    write_synthetic_diligent,
+)
 from brdfcap.capture.images import read_image
 from brdfcap.capture.load import load_capture
-from brdfcap.errors import CaptureError, GeometryError
 from brdfcap.fit.diligent_fit import measure_brdf_sh, phong_rho_hat
 from brdfcap.reconstruct.normal_map import check_normal_frame, normal_map_geometry
+from click.testing import CliRunner
+
+from brdfcap.core.errors import CaptureError, GeometryError
 
 SIZE = 48
 LIGHTS = 48
@@ -84,7 +88,8 @@ def test_import_writes_standard_capture(layout, capture_dir):
 
 def test_normal_map_geometry_frame(capture_dir):
     """World = DiLiGenT frame: ωo = +z everywhere; the top of the image has n_y > 0 (y up),
-    the right side n_x > 0, and the centre faces the viewer."""
+    the right side n_x > 0, and the centre faces the viewer.
+    """
     cap = load_capture(capture_dir)
     g = normal_map_geometry(cap)
     v = g.views[0]
@@ -173,7 +178,8 @@ world_to_camera = [[1,0,0,0],[0,1,0,0],[0,0,1,1]]
 def test_phong_rho_hat_matches_closed_forms():
     """Λ_l ρ̂_l of the normalised Phong lobe ``(s+1)/(2π) x^s``: 1 at l = 0 (energy),
     ``∫_0^1 (s+1) x^{s+1} dx = (s+1)/(s+2)`` at l = 1, and the large-s (Laplace) limit
-    ``exp(-l(l+1)/(2s))`` — R&H 2001 §3.2 write its large-l form ``exp(-l²/2s)``."""
+    ``exp(-l(l+1)/(2s))`` — R&H 2001 §3.2 write its large-l form ``exp(-l²/2s)``.
+    """
     s, lmax = 400.0, 6
     ls = np.arange(lmax + 1)
     rho = phong_rho_hat(np.ones(1), s, lmax)[:, 0]
@@ -187,7 +193,8 @@ def test_phong_rho_hat_matches_closed_forms():
 def test_sh_measurement_recovers_lobe_or_flags_conditioning(x_lo):
     """Samples of r·ωi over all of [-1, 1] determine the low ρ̂_l; over [0.3, 1] only (lights
     and normals that never reach the lobe's tail) the low bands are not determined and the
-    conditioning says so, instead of returning plausible-looking wrong numbers."""
+    conditioning says so, instead of returning plausible-looking wrong numbers.
+    """
     rng = np.random.default_rng(0)
     x = rng.uniform(x_lo, 1.0, 20000)
     ks, s = 0.3, 12.0
@@ -271,7 +278,6 @@ def test_phong_matches_inverse_rendering_models():
     """Same reflection-space Phong as ``brdfcap.fit.brdf_models`` (issue 6), in both domains."""
     bm = pytest.importorskip("brdfcap.fit.brdf_models")
     import torch
-
     from brdfcap.fit.diligent_fit import phong_radiance
 
     rng = np.random.default_rng(1)

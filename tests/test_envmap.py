@@ -128,7 +128,7 @@ def test_write_read_project(tmp_path, ext, tol):
 
 
 def test_read_errors(tmp_path):
-    from brdfcap.errors import BrdfcapError
+    from brdfcap.core.errors import BrdfcapError
 
     bad = tmp_path / "not_an_image.hdr"
     bad.write_text("hello")

@@ -14,7 +14,7 @@ from brdfcap.reconstruct.camera import camera_center
 from brdfcap.reconstruct.geometry import _scene, cast_view, light_at
 from brdfcap.reconstruct.mesh import mesh_from_arrays, uv_sphere
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 CAM = CameraModel("pinhole", 96, 96, fx=130.0, fy=130.0, cx=48.0, cy=48.0)
 ORTHO = CameraModel("orthographic", 64, 64, cx=32.0, cy=32.0, pixel_size=2.4 / 64)

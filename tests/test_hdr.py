@@ -9,7 +9,7 @@ from brdfcap.capture.raw import decode_raw
 from brdfcap.capture.raw_synth import RawSynthParams, write_raw_view
 from brdfcap.capture.types import NoiseModel
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 
 def bracket(L, ks, model, rng, clip=1.0):
@@ -76,7 +76,8 @@ def test_estimate_noise_photon_transfer():
 
 def test_bracketed_synthetic_raw_merges(tmp_path):
     """Synthetic raw brackets with noise decode and merge: the +EV member clips in the highlight,
-    the merge keeps it from the -EV member and has lower variance than the 0 EV member."""
+    the merge keeps it from the -EV member and has lower variance than the 0 EV member.
+    """
     v, u = np.mgrid[0:64, 0:96]
     img = np.stack([0.2 + 0.5 * u / 96, 0.3 + 0.4 * v / 64, 0.4 + 0 * u], -1)
     rec = write_raw_view(tmp_path / "b", img, ["black_white_level", "noise", "brackets"],

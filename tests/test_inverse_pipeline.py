@@ -93,7 +93,8 @@ def test_problem_both_reports_ambiguities(captures, tmp_path):
 def test_problem_brdf_isotropic_run_option(captures, tmp_path):
     """Problem 2, view-dependent: `--problem brdf-isotropic` recovers ρ̂_lpq under the known
     Grace lighting (l ≤ 2). Bands l > 2 are not excited by that lighting, so the first
-    ill-conditioned band is 3, and the fitted model re-renders the Phong sphere closely."""
+    ill-conditioned band is 3, and the fitted model re-renders the Phong sphere closely.
+    """
     r = _run(captures["env"], tmp_path / "o", "--problem", "brdf-isotropic", "--brdf-lmax", "3")
     iso = r["brdf"]["isotropic"]
     assert r["brdf"]["model"] == "sh-isotropic"
@@ -105,10 +106,11 @@ def test_problem_brdf_isotropic_run_option(captures, tmp_path):
 def test_problem_decomposition_round_trip():
     """R&H decomposition as a run problem: data rendered by the decomposition's own forward
     model (slow SH lighting + two bright sources, microfacet σ = 0.1) give back the slow
-    lighting and the source powers (noise-free, to 1e-6 relative)."""
-    import torch
+    lighting and the source powers (noise-free, to 1e-6 relative).
+    """
     from types import SimpleNamespace
 
+    import torch
     from brdfcap.fit.decomposition import microfacet_decomposition
     from brdfcap.fit.problems import solve_problem
 

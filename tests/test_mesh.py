@@ -15,7 +15,7 @@ from brdfcap.reconstruct.mesh import (
     uv_sphere,
 )
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
 needs_bunny = pytest.mark.skipif(not BUNNY.is_file(), reason="shared bunny mesh not present")

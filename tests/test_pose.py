@@ -13,7 +13,7 @@ from brdfcap.reconstruct import pose as P
 from brdfcap.reconstruct.geometry import _scene
 from brdfcap.reconstruct.mesh import load_mesh, mesh_from_arrays
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
 W = 96

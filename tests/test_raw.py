@@ -19,7 +19,7 @@ from brdfcap.capture.raw import (
 from brdfcap.capture.raw_synth import write_dng, write_raw_view
 from conftest import REFERENCE
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 REAL_DNG = REFERENCE / "raw" / "canon_eos_6d.dng"
 needs_real = pytest.mark.skipif(not REAL_DNG.is_file(), reason="shared reference DNG missing")
@@ -63,7 +63,8 @@ def test_real_dng_decodes_to_finite_linear_radiance(real):
 def test_real_dng_uses_the_files_colour_matrix(real):
     """The matrix is the file's D65 ColorMatrix2 (= LibRaw's rgb_xyz_matrix) times
     CameraCalibration2 and AnalogBalance (DNG 1.4 ch. 6), and the camera->sRGB product equals
-    LibRaw's own rgb_cam, an independent implementation of the same normalisation."""
+    LibRaw's own rgb_cam, an independent implementation of the same normalisation.
+    """
     with tifffile.TiffFile(str(REAL_DNG)) as tf:
         tags = tf.pages[0].tags
         cm2 = np.array(tags[50722].value, dtype=float)
@@ -86,7 +87,8 @@ def test_real_dng_uses_the_files_colour_matrix(real):
 @needs_real
 def test_real_dng_is_linear_in_the_stored_samples(real):
     """Undoing matrix, white balance and exposure gives back LibRaw's samples / white: the path
-    applies no gamma or tone curve."""
+    applies no gamma or tone curve.
+    """
     with rawpy.imread(str(REAL_DNG)) as r:
         samples = np.asarray(r.raw_image, dtype=float)[..., :3] / r.white_level
     M = np.array(real.chain["camera_to_working"])
@@ -100,7 +102,8 @@ def test_real_dng_is_linear_in_the_stored_samples(real):
 @needs_real
 def test_real_dng_samples_follow_the_lossy_dng_linearisation_polynomial():
     """The lossy DNG stores 8-bit codes and a MapPolynomial (OpcodeList2) back to linear; LibRaw
-    applies it, so every sample is 65535 * p(code / 255) (truncated)."""
+    applies it, so every sample is 65535 * p(code / 255) (truncated).
+    """
     with tifffile.TiffFile(str(REAL_DNG)) as tf:
         op = tf.pages[0].pages[0].tags[51009].value
     o = 4 + 16
@@ -343,7 +346,8 @@ def test_linear_image_written_with_its_colour_space(tmp_path, space, oiio_name):
 
 def test_noise_profile_estimated_from_dark_and_flat_frames(tmp_path):
     """Photon transfer on synthetic raw darks/flats recovers S = gain / span and
-    O = (read^2 + 1/12) / span^2 (quantisation included), and the decode reports its source."""
+    O = (read^2 + 1/12) / span^2 (quantisation included), and the decode reports its source.
+    """
     rng = np.random.default_rng(5)
     black, white, read, gain = 512, 16383, 3.0, 0.5
     span = white - black

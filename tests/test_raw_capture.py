@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from conftest import scene_text
 
 from brdfcap.cli import main
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 RAW_EFFECTS = ["colour_matrix", "white_balance", "cfa", "black_white_level", "noise"]
@@ -45,7 +45,8 @@ def test_simulated_raw_capture_is_dngs_with_recorded_effects(raw_capture):
 
 def test_raw_capture_with_noise_recovers_lighting(raw_capture, tmp_path):
     """Done-when: the skeleton's round trip (Grace, lmax 2, 1% of L00 per coefficient) holds when
-    the capture is raw (CFA, colour matrix, white balance, black/white level) with noise on."""
+    the capture is raw (CFA, colour matrix, white balance, black/white level) with noise on.
+    """
     r = _run(raw_capture, tmp_path / "out")
     est = torch.tensor(r["lighting"]["coefficients"], dtype=torch.float64)
     rel = ((est - GRACE) / GRACE[0]).abs()
@@ -106,7 +107,8 @@ def test_raw_keys_in_capture_toml(raw_capture, tmp_path):
 
 def test_colour_checker_in_capture_toml_corrects_every_view(raw_capture, tmp_path):
     """A chart photographed through a camera colour error (a mixing matrix the DNG does not
-    declare) is fitted from patch boxes in [colour]; ΔE2000 drops and the views are corrected."""
+    declare) is fitted from patch boxes in [colour]; ΔE2000 drops and the views are corrected.
+    """
     from brdfcap.capture.colour import colour_checker_reference
     from brdfcap.capture.raw_synth import write_raw_view
 
@@ -167,7 +169,8 @@ def test_raw_noise_standard_errors_are_consistent(tmp_path):
 @pytest.mark.slow
 def test_simulated_brackets_are_merged_on_load(tmp_path):
     """A bracketed raw scene ("saturation" clips the 0 EV frame, +2 EV clips more) loads as one
-    merged view per pose: clipped samples come from the shorter exposures."""
+    merged view per pose: clipped samples come from the shorter exposures.
+    """
     effects = ["cfa", "black_white_level", "noise", "saturation", "brackets"]
     (tmp_path / "b.toml").write_text(scene_text(width=64, views=2, extra=(
         f"[camera_raw]\neffects = {effects}\nsaturate_fraction = 0.1\n")))

@@ -15,7 +15,7 @@ from brdfcap.capture.raw_synth import (
     write_raw_view,
 )
 
-from brdfcap.errors import CaptureError
+from brdfcap.core.errors import CaptureError
 
 ALL_NOISE_FREE = ["colour_matrix", "white_balance", "vignetting", "cfa", "black_white_level"]
 
@@ -36,7 +36,8 @@ def mean_rel_error(decoded, truth, mask):
 def away_from_edges(truth, size=5, curvature=0.01):
     """Pixels with no edge (discrete Laplacian above ``curvature`` of the value) within
     ``size``: a CFA samples each colour at every other pixel, so no demosaic recovers a
-    sub-pixel edge, whereas bilinear interpolation is exact on smooth (locally planar) shading."""
+    sub-pixel edge, whereas bilinear interpolation is exact on smooth (locally planar) shading.
+    """
     from scipy import ndimage
 
     lap = np.stack([ndimage.laplace(truth[..., c], mode="nearest") for c in range(3)], -1)
@@ -53,7 +54,8 @@ def away_from_edges(truth, size=5, curvature=0.01):
 ])
 def test_round_trip_noise_free_within_half_a_percent(tmp_path, effects):
     """Done-when: a synthetic raw capture decodes to the render within 0.5% (mean, unsaturated
-    pixels, no noise)."""
+    pixels, no noise).
+    """
     img = render()
     rec = write_raw_view(tmp_path / "v", img, effects)
     flat = write_flat_field(tmp_path / "flat.dng", img.shape[:2], effects) \

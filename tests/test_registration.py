@@ -10,7 +10,7 @@ from brdfcap.reconstruct.mesh import load_mesh
 from brdfcap.reconstruct.pose import _rodrigues
 from brdfcap.reconstruct.registration import load_scan, register_mesh_to_scan
 
-from brdfcap.errors import GeometryError
+from brdfcap.core.errors import GeometryError
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
 
@@ -77,7 +77,6 @@ def test_register_capture_moves_mesh_into_scan_frame(bunny, tmp_path):
     import types
 
     import open3d as o3d
-
     from brdfcap.reconstruct.registration import register_capture
 
     truth = _rigid(-35.0, [1.0, 0.2, -0.4], [0.0, 0.03, -0.05])

@@ -165,7 +165,8 @@ def test_bench_section_renders_in_report_and_index(run_out, tmp_path):
 
 def test_per_view_tables_split_scalars_from_nested_records():
     """The per-image table keeps scalar columns; nested records (registration, geometry) become
-    their own flattened tables, and pose matrices (lists) are left out of both."""
+    their own flattened tables, and pose matrices (lists) are left out of both.
+    """
     from brdfcap.reports.html import _image_tables
 
     images = [

@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
-from conftest import scene_text
-
 from brdfcap.capture.simulate import simulate
-from brdfcap.cli import main
 from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.lighting import fit_lighting_lambertian
 from brdfcap.fit.render import irradiance_sh
+from click.testing import CliRunner
+from conftest import scene_text
+
+from brdfcap.cli import main
 from brdfcap.pipeline import RunOptions, run_capture
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
@@ -99,7 +99,8 @@ def test_noisy_standard_errors_are_consistent(tmp_path):
 
 def test_known_albedo_fixes_scale(tmp_path):
     """With [material].albedo in capture.toml the lighting itself (not albedo x lighting) comes
-    back."""
+    back.
+    """
     (tmp_path / "s.toml").write_text(scene_text(albedo=(0.5, 0.25, 0.8), width=64))
     cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
     toml = (cap / "capture.toml").read_text()
@@ -133,7 +134,7 @@ def test_directional_capture_recovers_albedo(tmp_path):
 
 
 def test_lmax_beyond_data_is_flagged_not_garbage(grace_capture, tmp_path):
-    """lmax = 8 for Lambertian data: odd bands > 1 unresolved, well-determined part intact."""
+    """Lmax = 8 for Lambertian data: odd bands > 1 unresolved, well-determined part intact."""
     out = run_capture(grace_capture, tmp_path / "out", RunOptions(lmax=8))
     lt = out.lighting
     assert lt.ill_conditioned_from_l == 3
@@ -229,7 +230,8 @@ def test_corrupt_image_error(grace_capture, tmp_path):
 ])
 def test_config_validation_names_the_key(grace_capture, tmp_path, edit, needle):
     from brdfcap.capture.config import load_config
-    from brdfcap.errors import CaptureError
+
+    from brdfcap.core.errors import CaptureError
 
     cap = _copy_capture(grace_capture, tmp_path / "cap")
     (cap / "capture.toml").write_text(edit((cap / "capture.toml").read_text()))
@@ -268,7 +270,7 @@ def test_non_finite_and_saturated_pixels_are_masked(grace_capture, tmp_path):
 
 
 def test_fit_rejects_empty_samples():
-    from brdfcap.errors import FitError
+    from brdfcap.core.errors import FitError
 
     with pytest.raises(FitError):
         fit_lighting_lambertian(torch.zeros(0, 3), torch.zeros(0, 3), 2)
@@ -276,7 +278,8 @@ def test_fit_rejects_empty_samples():
 
 def test_run_on_diligent_layout_hints_at_import(tmp_path):
     """Pointing `run` at a DiLiGenT-layout directory names the import command instead of a bare
-    'no capture.toml'."""
+    'no capture.toml'.
+    """
     (tmp_path / "light_directions.txt").write_text("0 0 1\n")
     res = _invoke("run", tmp_path, "--out", tmp_path / "o")
     _one_line_error(res, "import-diligent")
@@ -284,10 +287,10 @@ def test_run_on_diligent_layout_hints_at_import(tmp_path):
 
 def test_probe_lit_scene_round_trip(tmp_path):
     """A scene lit by a real HDR light probe (shared/reference/probes/uffizi.hdr, projected to
-    SH by the simulator) comes back through the pipeline: bands 0-2 within 1% of L00."""
-    from conftest import REFERENCE
-
+    SH by the simulator) comes back through the pipeline: bands 0-2 within 1% of L00.
+    """
     from brdfcap.fit.envmap import envmap_sh_from_file
+    from conftest import REFERENCE
 
     probe = REFERENCE / "probes" / "uffizi.hdr"
     (tmp_path / "s.toml").write_text(scene_text(
