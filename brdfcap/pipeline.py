@@ -7,7 +7,6 @@ turns the outcome into ``results.json`` + ``report.html`` (both written atomical
 from __future__ import annotations
 
 import datetime as _dt
-import platform
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -16,12 +15,12 @@ from typing import Callable
 import numpy as np
 import torch
 
-from brdfcap import __version__
 from brdfcap.capture.load import load_capture
 from brdfcap.capture.types import Capture
 from brdfcap.core.atomic import write_json_atomic
 from brdfcap.core.errors import FitError
 from brdfcap.core.jsonsafe import json_safe
+from brdfcap.core.provenance import config_record, provenance, versions
 from brdfcap.fit.filters import lambertian_filter
 from brdfcap.fit.lighting import AlbedoFit, SHFit, fit_albedo_directional, fit_lighting_lambertian
 from brdfcap.fit.render import lambertian_radiance_directional, lambertian_radiance_sh
@@ -54,7 +53,8 @@ class RunOptions:
 class RunContext:
     """How a run was invoked; changes no number (``brdfcap.batch`` fills it).
 
-    ``provenance``: hashes of inputs/options/code (:func:`brdfcap.batch.provenance`), computed
+    ``provenance``: hashes of inputs, options and code
+    (:func:`brdfcap.core.provenance.provenance`), computed
     here when absent; ``config``: the configuration record written as ``config.json``;
     ``on_stage``: called with each stage name as it starts (progress bars);
     ``report_extras``: extra report sections (``{"bench": ...}``).
@@ -78,19 +78,6 @@ class RunOutcome:
     lighting: SHFit | None = None
     albedo: AlbedoFit | None = None
     warnings: list[str] = field(default_factory=list)
-
-
-def versions() -> dict[str, str]:
-    """Versions of brdfcap and the libraries that shape its numbers."""
-    out = {"brdfcap": __version__, "python": platform.python_version(),
-           "torch": torch.__version__, "numpy": np.__version__}
-    for mod in ("open3d", "kornia", "rawpy", "colour", "OpenImageIO", "scipy"):
-        try:
-            m = __import__(mod)
-            out[mod] = str(getattr(m, "__version__", "unknown"))
-        except Exception:  # pragma: no cover - optional at runtime
-            out[mod] = "not installed"
-    return out
 
 
 def _predict(samples: Samples, lighting: SHFit | None, albedo_fit: AlbedoFit | None,
@@ -144,8 +131,6 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     ctx = context or RunContext()
     stage = ctx.on_stage or (lambda name: None)
     if ctx.provenance is None:
-        from brdfcap.batch import provenance
-
         ctx.provenance = provenance(capture_dir, opts)
     out = Path(out_dir)
     timings: dict[str, float] = {}
@@ -312,8 +297,6 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
                                ReportInputs(results=results, figures=figs, summary=summary,
                                             warnings=warnings, extras=ctx.report_extras))
     write_coefficients_csv(out / "coefficients.csv", results)
-    from brdfcap.batch import config_record
-
     write_json_atomic(out / "config.json",
                       ctx.config or config_record(opts, None, ctx.provenance))
     results_path = write_json_atomic(out / "results.json", results)  # last: marks completion

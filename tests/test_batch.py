@@ -98,7 +98,7 @@ def _skip_if_code_changed(before: str) -> None:
     Other people editing this working tree between two CLI runs change the code hash, and then
     re-running is the right answer; in CI (a clean checkout) this never triggers.
     """
-    from brdfcap.batch import _source_hash, code_version
+    from brdfcap.core.provenance import _source_hash, code_version
 
     _source_hash.cache_clear()
     if code_version()["hash"] != before:
