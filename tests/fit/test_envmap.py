@@ -22,9 +22,7 @@ from brdfcap.fit.envmap import (
 from brdfcap.fit.filters import lambertian_filter, zonal_convolve
 from brdfcap.fit.sh import num_coeffs, real_sh, sh_index
 
-PROBES = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "probes"
-if not PROBES.is_dir():
-    PROBES = Path("/work/shared/reference/probes")
+PROBES = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference" / "probes"
 
 
 def _coeffs(lmax, c=3, seed=0):

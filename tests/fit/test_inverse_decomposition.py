@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import torch
-from _inverse_helpers import random_lighting, unit
 from brdfcap.fit.brdf_models import microfacet_sh_filter
 from brdfcap.fit.decomposition import (
     fit_decomposed_lighting,
@@ -13,6 +12,8 @@ from brdfcap.fit.decomposition import (
     microfacet_decomposition,
 )
 from brdfcap.fit.sh import band_of_index, real_sh
+
+from brdfcap.testing import random_lighting, unit
 
 
 def test_gaussian_lobe_vs_the_sh_filter_small_angle_error():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import torch
-from _inverse_helpers import unit
 from brdfcap.fit.aldrian_smith import (
     colour_transform_matrix,
     fit_aldrian_smith,
@@ -12,6 +11,8 @@ from brdfcap.fit.aldrian_smith import (
 from brdfcap.fit.brdf_models import diffuse_filter
 from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.sh import band_of_index, real_sh
+
+from brdfcap.testing import unit
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 

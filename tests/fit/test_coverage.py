@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _inverse_helpers import random_lighting, unit
 from brdfcap.fit.brdf_models import BRDFSpec, render_directional, render_sh
 from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.parametric import fit_brdf_parametric
+
+from brdfcap.testing import random_lighting, unit
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 

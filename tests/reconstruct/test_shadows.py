@@ -15,7 +15,8 @@ from brdfcap.reconstruct.geometry import _scene, build_samples, compute_geometry
 from brdfcap.reconstruct.mesh import load_mesh, mesh_from_arrays, uv_sphere
 from brdfcap.reconstruct.shadows import shadow_mask, shadow_policy
 
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
+REFERENCE = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference"
+BUNNY = REFERENCE / "mesh" / "bun_zipper.ply"
 ALBEDO = [0.8, 0.6, 0.4]
 
 

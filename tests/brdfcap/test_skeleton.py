@@ -13,10 +13,10 @@ from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.lighting import fit_lighting_lambertian
 from brdfcap.fit.render import irradiance_sh
 from click.testing import CliRunner
-from conftest import scene_text
 
 from brdfcap.cli import main
 from brdfcap.pipeline import RunOptions, run_capture
+from brdfcap.testing import scene_text
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 
@@ -195,7 +195,8 @@ def test_mesh_outside_view_error(grace_capture, tmp_path):
     cap = _copy_capture(grace_capture, tmp_path / "cap")
     toml = (cap / "capture.toml").read_text()
     # push every camera far to the side: the sphere leaves every image
-    toml = toml.replace(", 4.0]]", ", 40.0]]").replace("[[0.0, 1.0, -0.0, 0.0]", "[[0.0, 1.0, -0.0, 50.0]")
+    toml = toml.replace(", 4.0]]", ", 40.0]]").replace("[[0.0, 1.0, -0.0, 0.0]",
+                                                     "[[0.0, 1.0, -0.0, 50.0]")
     import re
 
     toml = re.sub(r"world_to_camera = \[\[([^\]]*), ([-0-9.e]+)\]",
@@ -285,14 +286,13 @@ def test_run_on_diligent_layout_hints_at_import(tmp_path):
     _one_line_error(res, "import-diligent")
 
 
-def test_probe_lit_scene_round_trip(tmp_path):
+def test_probe_lit_scene_round_trip(tmp_path, reference):
     """A scene lit by a real HDR light probe (shared/reference/probes/uffizi.hdr, projected to
     SH by the simulator) comes back through the pipeline: bands 0-2 within 1% of L00.
     """
     from brdfcap.fit.envmap import envmap_sh_from_file
-    from conftest import REFERENCE
 
-    probe = REFERENCE / "probes" / "uffizi.hdr"
+    probe = reference / "probes" / "uffizi.hdr"
     (tmp_path / "s.toml").write_text(scene_text(
         width=64, lighting=f'kind = "environment"\nprobe = "{probe}"\nprobe_lmax = 8'))
     cap = simulate(tmp_path / "s.toml", tmp_path / "cap")

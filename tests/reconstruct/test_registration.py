@@ -12,7 +12,8 @@ from brdfcap.reconstruct.registration import load_scan, register_mesh_to_scan
 
 from brdfcap.core.errors import GeometryError
 
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
+REFERENCE = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference"
+BUNNY = REFERENCE / "mesh" / "bun_zipper.ply"
 
 
 @pytest.fixture(scope="module")

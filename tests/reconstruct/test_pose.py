@@ -15,7 +15,8 @@ from brdfcap.reconstruct.mesh import load_mesh, mesh_from_arrays
 
 from brdfcap.core.errors import GeometryError
 
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
+REFERENCE = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference"
+BUNNY = REFERENCE / "mesh" / "bun_zipper.ply"
 W = 96
 CAM = CameraModel("pinhole", W, W, fx=W * 1.9, fy=W * 1.9, cx=W / 2, cy=W / 2)
 DIST = (-0.12, 0.03, 0.0015, -0.001, 0.0)
@@ -160,7 +161,6 @@ def test_capture_registration_end_to_end(bunny, tmp_path):
     from brdfcap.capture.load import load_capture
     from brdfcap.capture.simulate import simulate, write_capture_toml
     from brdfcap.reconstruct.geometry import build_samples, compute_capture_geometry
-
     from tests.test_shadows import _scene_toml, _write_ply
 
     mesh, scene = bunny

@@ -17,7 +17,8 @@ from brdfcap.reconstruct.mesh import (
 
 from brdfcap.core.errors import GeometryError
 
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "mesh" / "bun_zipper.ply"
+REFERENCE = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference"
+BUNNY = REFERENCE / "mesh" / "bun_zipper.ply"
 needs_bunny = pytest.mark.skipif(not BUNNY.is_file(), reason="shared bunny mesh not present")
 
 

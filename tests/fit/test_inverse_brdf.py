@@ -6,7 +6,6 @@ import math
 
 import pytest
 import torch
-from _inverse_helpers import random_lighting, unit
 from brdfcap.fit.brdf_models import (
     BRDFSpec,
     directional_albedo,
@@ -16,6 +15,8 @@ from brdfcap.fit.brdf_models import (
     render_sh,
 )
 from brdfcap.fit.inverse_brdf import fit_brdf_parametric, fit_brdf_sh
+
+from brdfcap.testing import random_lighting, unit
 
 
 def _directional_samples(g, n=3000, spread=0.15):

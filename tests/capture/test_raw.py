@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,10 +18,11 @@ from brdfcap.capture.raw import (
     is_raw_file,
 )
 from brdfcap.capture.raw_synth import write_dng, write_raw_view
-from conftest import REFERENCE
 
 from brdfcap.core.errors import CaptureError
+from brdfcap.testing import reference_dir
 
+REFERENCE = reference_dir(Path(__file__).resolve().parents[2])
 REAL_DNG = REFERENCE / "raw" / "canon_eos_6d.dng"
 needs_real = pytest.mark.skipif(not REAL_DNG.is_file(), reason="shared reference DNG missing")
 

@@ -10,13 +10,14 @@ import math
 
 import pytest
 import torch
-from _inverse_helpers import random_lighting, unit
 from brdfcap.fit.brdf_models import BRDFSpec, phong_sh_filter, render_sh
 from brdfcap.fit.conditioning import predicted_lstar
 from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.filters import lambertian_filter
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index
+
+from brdfcap.testing import random_lighting, unit
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 

@@ -12,10 +12,10 @@ from brdfcap.capture.load import load_capture
 from brdfcap.capture.simulate import simulate
 from brdfcap.fit.datasets import GRACE_RH2001
 from click.testing import CliRunner
-from conftest import scene_text
 
 from brdfcap.cli import main
 from brdfcap.core.errors import CaptureError
+from brdfcap.testing import scene_text
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 RAW_EFFECTS = ["colour_matrix", "white_balance", "cfa", "black_white_level", "noise"]

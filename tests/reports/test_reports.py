@@ -27,9 +27,9 @@ from brdfcap.results_io import (
 def run_out(tmp_path_factory):
     """One tiny capture run through the pipeline (shared by the tests of this module)."""
     from brdfcap.capture.simulate import simulate
-    from test_batch import TINY_SCENE  # noqa: F401  (same tiny scene)
 
     from brdfcap.pipeline import RunOptions, run_capture
+    from brdfcap.testing import TINY_SCENE
 
     d = tmp_path_factory.mktemp("rep")
     (d / "scene.toml").write_text(TINY_SCENE)

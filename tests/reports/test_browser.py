@@ -55,7 +55,7 @@ def check_page(path: Path, shot: Path) -> dict:
 
 def test_self_check_catches_a_broken_page(tmp_path):
     """The checker fails a page with a script error and a missing image (it can fail)."""
-    src = Path(__file__).resolve().parents[1] / "reports" / "templates" / "_selfcheck.html"
+    src = Path(__file__).resolve().parents[2] / "reports" / "templates" / "_selfcheck.html"
     script = src.read_text()
     page = tmp_path / "broken.html"
     page.write_text(f"<!DOCTYPE html><html><head>{script}</head><body>"
@@ -97,21 +97,6 @@ def test_reports_and_index_load_cleanly(tmp_path):
 
 
 def _template(tmp_path: Path) -> Path:
-    import open3d as o3d
-    from brdfcap.capture.simulate import simulate
-    from brdfcap.reconstruct.mesh import uv_sphere
-    from test_batch import TINY_SCENE
+    from brdfcap.testing import make_tiny_capture
 
-    (tmp_path / "scene.toml").write_text(TINY_SCENE)
-    cap = simulate(tmp_path / "scene.toml", tmp_path / "tmpl" / "capture")
-    # a coarse shared mesh keeps the run short (the simulator writes a 256x512 sphere)
-    (cap / "sphere.ply").unlink()
-    m = uv_sphere(1.0, 24, 48)
-    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices),
-                                   o3d.utility.Vector3iVector(m.faces.astype("int32")))
-    om.vertex_normals = o3d.utility.Vector3dVector(m.vertex_normals)
-    o3d.io.write_triangle_mesh(str(cap.parent / "sphere.ply"), om)
-    toml = (cap / "capture.toml").read_text().replace('mesh = "sphere.ply"',
-                                                      'mesh = "../sphere.ply"')
-    (cap / "capture.toml").write_text(toml)
-    return cap
+    return make_tiny_capture(tmp_path / "tmpl")

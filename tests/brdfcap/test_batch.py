@@ -23,54 +23,6 @@ from brdfcap.cli import main
 from brdfcap.pipeline import RunOptions
 from brdfcap.results_io import validate_results
 
-TINY_SCENE = """
-name = "tiny sphere"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "lambertian"
-albedo = [1.0, 1.0, 1.0]
-[lighting]
-kind = "environment"
-sh = "grace-rh2001"
-[camera]
-model = "pinhole"
-width = 48
-height = 48
-fov_deg = 40.0
-[views]
-count = 2
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.01
-read = 0.002
-seed = 0
-"""
-
-
-@pytest.fixture(scope="module")
-def tiny_template(tmp_path_factory) -> Path:
-    """One simulated tiny capture whose mesh is a coarse shared ``../sphere.ply``."""
-    import open3d as o3d
-    from brdfcap.capture.simulate import simulate
-    from brdfcap.reconstruct.mesh import uv_sphere
-
-    d = tmp_path_factory.mktemp("tiny")
-    (d / "scene.toml").write_text(TINY_SCENE)
-    cap = simulate(d / "scene.toml", d / "capture")
-    (cap / "sphere.ply").unlink()
-    m = uv_sphere(1.0, 24, 48)
-    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices),
-                                   o3d.utility.Vector3iVector(m.faces.astype("int32")))
-    om.vertex_normals = o3d.utility.Vector3dVector(m.vertex_normals)
-    o3d.io.write_triangle_mesh(str(d / "sphere.ply"), om)
-    toml = (cap / "capture.toml").read_text().replace('mesh = "sphere.ply"',
-                                                      'mesh = "../sphere.ply"')
-    (cap / "capture.toml").write_text(toml)
-    return cap
-
 
 def make_root(template: Path, root: Path, n: int, corrupt: tuple[int, ...] = ()) -> list[Path]:
     """``n`` copies of the template capture under ``root/cap_XX``, some with a corrupt image."""

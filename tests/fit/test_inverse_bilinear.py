@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _inverse_helpers import random_lighting, unit
 from brdfcap.fit.bilinear import fit_bilinear
 from brdfcap.fit.brdf_models import BRDFSpec, phong_sh_filter, render_sh
 from brdfcap.fit.filters import lambertian_filter
 from brdfcap.fit.sh import band_of_index
+
+from brdfcap.testing import random_lighting, unit
 
 SPEC = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
 

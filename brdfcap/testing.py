@@ -1,0 +1,133 @@
+"""Public helpers for brdfcap's tests and for users testing their own extensions.
+
+Synthetic sample sets (no rendering needed), small scene TOMLs for :func:`brdfcap.capture.simulate`
+and the location of the optional shared reference data. Tests import these instead of importing
+each other or ``conftest`` by name.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from brdfcap.capture.simulate import simulate
+from brdfcap.reconstruct.mesh import uv_sphere
+
+__all__ = ["unit", "random_lighting", "scene_text", "TINY_SCENE", "make_tiny_capture",
+           "reference_dir"]
+
+#: A tiny (48x48 px, 2 views) noisy Lambertian sphere under Grace Cathedral (R&H 2001).
+TINY_SCENE = """
+name = "tiny sphere"
+[geometry]
+shape = "sphere"
+radius = 1.0
+[material]
+model = "lambertian"
+albedo = [1.0, 1.0, 1.0]
+[lighting]
+kind = "environment"
+sh = "grace-rh2001"
+[camera]
+model = "pinhole"
+width = 48
+height = 48
+fov_deg = 40.0
+[views]
+count = 2
+distance = 4.0
+elevation_deg = 30.0
+[noise]
+relative = 0.01
+read = 0.002
+seed = 0
+"""
+
+
+def unit(n: int, gen: torch.Generator, hemisphere: bool = False) -> torch.Tensor:
+    """Return ``n`` random unit vectors ``(n, 3)``, uniform on the sphere or the +z hemisphere.
+
+    Examples
+    --------
+    >>> v = unit(4, torch.Generator().manual_seed(0))
+    >>> v.shape, bool(torch.allclose(v.norm(dim=-1), torch.ones(4, dtype=torch.float64)))
+    (torch.Size([4, 3]), True)
+    """
+    v = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen, dtype=torch.float64),
+                                      dim=-1)
+    if hemisphere:
+        v[:, 2] = v[:, 2].abs()
+    return v
+
+
+def random_lighting(lmax: int, gen: torch.Generator, dc: float = 2.0,
+                    amp: float = 0.3) -> torch.Tensor:
+    """Return ``((lmax+1)², 3)`` random SH lighting with a dominant positive DC term.
+
+    Examples
+    --------
+    >>> random_lighting(2, torch.Generator().manual_seed(0)).shape
+    torch.Size([9, 3])
+    """
+    x = torch.randn((lmax + 1) ** 2, 3, generator=gen, dtype=torch.float64) * amp
+    x[0] += dc
+    return x
+
+
+def scene_text(*, width: int = 96, views: int = 6, noise: str | None = None,
+               albedo=(1.0, 1.0, 1.0), lighting: str = 'kind = "environment"\nsh = "grace-rh2001"',
+               extra: str = "") -> str:
+    """Return a small Lambertian-sphere scene TOML (input of ``simulate``)."""
+    noise_tab = f"\n[noise]\n{noise}\n" if noise else ""
+    return f"""
+name = "test sphere"
+{extra}
+[geometry]
+shape = "sphere"
+radius = 1.0
+[material]
+model = "lambertian"
+albedo = {list(albedo)}
+[lighting]
+{lighting}
+[camera]
+model = "pinhole"
+width = {width}
+height = {width}
+fov_deg = 40.0
+[views]
+count = {views}
+distance = 4.0
+elevation_deg = 30.0
+{noise_tab}
+"""
+
+
+def make_tiny_capture(directory: Path) -> Path:
+    """Simulate :data:`TINY_SCENE` into ``directory/capture`` with a coarse ``../sphere.ply``.
+
+    The simulator writes a 256x512 sphere; a 24x48 one beside the capture keeps runs short.
+    Returns the capture directory.
+    """
+    import open3d as o3d  # heavy optional import, only when a capture is made
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "scene.toml").write_text(TINY_SCENE)
+    cap = simulate(directory / "scene.toml", directory / "capture")
+    (cap / "sphere.ply").unlink()
+    m = uv_sphere(1.0, 24, 48)
+    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices),
+                                   o3d.utility.Vector3iVector(m.faces.astype("int32")))
+    om.vertex_normals = o3d.utility.Vector3dVector(m.vertex_normals)
+    o3d.io.write_triangle_mesh(str(cap.parent / "sphere.ply"), om)
+    toml = (cap / "capture.toml").read_text().replace('mesh = "sphere.ply"',
+                                                      'mesh = "../sphere.ply"')
+    (cap / "capture.toml").write_text(toml)
+    return cap
+
+
+def reference_dir(repo: Path) -> Path:
+    """``<repo>/../shared/reference``: the optional real reference data (may be absent)."""
+    return Path(repo).resolve().parent / "shared" / "reference"
