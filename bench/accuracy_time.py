@@ -1,6 +1,6 @@
 """What accuracy costs in time: SH inverse lighting over lmax x samples x dtype x device x solver.
 
-Same as ``brdfcap bench`` (see :mod:`brdfcap.cmd_bench` for the scene, the error measure and
+Same as ``brdfcap bench`` (see :mod:`brdfcap.baselines` for the scene, the error measure and
 the Adam-through-renderer baseline). Examples::
 
     python bench/accuracy_time.py                 # default grid, a few minutes on 2 cores
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import sys
 
-from brdfcap.cmd_bench import bench_cmd
+from brdfcap.cli.bench import bench_cmd
 
 if __name__ == "__main__":
     sys.argv[0] = "bench/accuracy_time.py"

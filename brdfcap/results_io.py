@@ -1,4 +1,4 @@
-"""Machine-readable results: the JSON Schema of ``results.json`` and the coefficient CSV.
+"""The one serialiser: ``results.json`` and ``coefficients.csv`` from a typed ``FitResult``.
 
 ``results.json`` follows ``brdfcap/schemas/results.schema.json`` (format
 ``brdfcap-results/1``, described in ``docs/results-format.md``). ``coefficients.csv`` is a long
@@ -13,20 +13,27 @@ channels) add rows, never columns::
 from __future__ import annotations
 
 import csv
+import datetime as _dt
 import io
 import json
 import math
 from functools import lru_cache
 from pathlib import Path
 
+from brdfcap.capture.types import Capture
 from brdfcap.core.atomic import write_text_atomic
+from brdfcap.core.provenance import versions
+from brdfcap.fit.records import FIT_SCHEMA
+from brdfcap.fit.result import FitResult
 
-__all__ = ["SCHEMA_PATH", "load_results_schema", "validate_results", "coefficient_rows",
-           "coefficients_csv", "write_coefficients_csv", "CSV_COLUMNS"]
+__all__ = ["SCHEMA_PATH", "RESULTS_FORMAT", "load_results_schema", "validate_results",
+           "coefficient_rows", "coefficients_csv", "write_coefficients_csv", "results_record",
+           "CSV_COLUMNS"]
+
+RESULTS_FORMAT = "brdfcap-results/1"
 
 SCHEMA_PATH = Path(__file__).resolve().parent / "schemas" / "results.schema.json"
 CSV_COLUMNS = ("quantity", "index", "l", "m", "channel", "value", "stderr", "determined")
-_CHANNELS = ("R", "G", "B")
 
 
 @lru_cache(maxsize=1)
@@ -42,10 +49,6 @@ def validate_results(results: dict) -> None:
     jsonschema.Draft202012Validator(load_results_schema()).validate(results)
 
 
-def _ch(c: int) -> str:
-    return _CHANNELS[c] if c < len(_CHANNELS) else str(c)
-
-
 def _num(v):
     if v is None:
         return ""
@@ -56,59 +59,63 @@ def _num(v):
     return repr(v) if isinstance(v, float) else str(v)
 
 
-def coefficient_rows(results: dict) -> list[dict]:
-    """Rows of ``coefficients.csv`` from a results record (lighting SH, then BRDF parameters).
+def coefficient_rows(fit: FitResult) -> list[dict]:
+    """Rows of ``coefficients.csv``: every :class:`~brdfcap.fit.result.Estimate` of ``fit``.
 
-    Lighting rows carry ``index = l(l+1)+m``; per-channel BRDF parameters (albedo, ``kd``, ...)
-    leave ``index/l/m`` empty, scalar ones (a Phong exponent) also ``channel``; an unknown
-    standard error is empty, a non-determined coefficient has ``stderr = inf`` and
-    ``determined = false``.
+    SH rows carry ``index = l(l+1)+m``; BRDF bands ``index = l = band``; per-channel
+    parameters leave ``index/l/m`` empty, scalar ones (a Phong exponent) also ``channel``; a
+    standard error is empty when the fit defines none or the value was given (``[material]``),
+    ``inf`` (with ``determined = false``) where the data do not determine the coefficient.
     """
-    rows: list[dict] = []
-    lt = results.get("lighting")
-    if lt and lt.get("coefficients"):
-        det = lt.get("determined")
-        for i, (vals, errs) in enumerate(zip(lt["coefficients"], lt["stderr"])):
-            l = int(math.isqrt(i))
-            for c, v in enumerate(vals):
-                e = errs[c] if c < len(errs) else None
-                d = bool(det[i][c]) if det else None
-                rows.append({"quantity": "lighting", "index": i, "l": l, "m": i - l * (l + 1),
-                             "channel": _ch(c), "value": v,
-                             "stderr": math.inf if (e is None and d is False) else e,
-                             "determined": d})
-    params = (results.get("brdf") or {}).get("parameters") or {}
-    for name, val in params.items():
-        if name.endswith("_stderr"):
-            continue
-        if isinstance(val, (int, float)) and not isinstance(val, bool):  # e.g. Phong exponent
-            err = params.get(f"{name}_stderr")
-            rows.append({"quantity": name, "index": None, "l": None, "m": None, "channel": "",
-                         "value": val, "stderr": err if isinstance(err, (int, float)) else None,
-                         "determined": None})
-            continue
-        if not isinstance(val, list):
-            continue
-        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in val):
-            continue
-        err = params.get(f"{name}_stderr")
-        for c, v in enumerate(val):
-            e = err[c] if isinstance(err, list) and c < len(err) else None
-            rows.append({"quantity": name, "index": None, "l": None, "m": None,
-                         "channel": _ch(c), "value": v, "stderr": e, "determined": None})
-    return rows
+    return fit.rows()
 
 
-def coefficients_csv(results: dict) -> str:
-    """``coefficients.csv`` as a string (header always present)."""
+def coefficients_csv(fit: FitResult) -> str:
+    """Return ``coefficients.csv`` as a string (header always present)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
-    for r in coefficient_rows(results):
+    for r in coefficient_rows(fit):
         w.writerow([_num(r[k]) for k in CSV_COLUMNS])
     return buf.getvalue()
 
 
-def write_coefficients_csv(path: str | Path, results: dict) -> Path:
-    """Write ``coefficients.csv`` atomically."""
-    return write_text_atomic(path, coefficients_csv(results))
+def write_coefficients_csv(path: str | Path, fit: FitResult) -> Path:
+    """Write ``coefficients.csv`` of ``fit`` atomically."""
+    return write_text_atomic(path, coefficients_csv(fit))
+
+
+def results_record(*, capture: Capture, capture_dir: str | Path, geometry, samples,
+                   fit: FitResult, options: dict, provenance: dict | None,
+                   warnings: list[str], device: str) -> dict:
+    """Return the ``results.json`` record of one run (``docs/results-format.md``).
+
+    The run-level keys (inputs, options, versions, residual, provenance) around the fit's own
+    blocks (:attr:`FitResult.record`). ``summary`` and ``timings_s`` are added by the pipeline;
+    the record is made JSON-safe once, when written.
+    """
+    pred = fit.prediction.to(samples.radiance.device)
+    rms = float((samples.radiance - pred).pow(2).mean().sqrt())
+    rel = rms / max(float(samples.radiance.abs().mean()), 1e-300)
+    results: dict = {
+        "format": RESULTS_FORMAT,
+        "capture": capture.name,
+        "capture_dir": str(Path(capture_dir).resolve()),
+        "generated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "options": options,
+        "versions": versions(),
+        "device": device,
+        "lighting": None,
+        "brdf": {"model": "lambertian", "parameters": {}},
+        "fit": {"n_samples": len(samples), "residual_rms": rms, "residual_rel": rel,
+                "problem": options.get("problem", fit.problem)},
+        "images": [v.info for v in capture.views],
+        "geometry": geometry.summary() if hasattr(geometry, "summary") else None,
+        "warnings": warnings,
+        "provenance": provenance,
+        "outputs": {"report": "report.html", "coefficients": "coefficients.csv",
+                    "config": "config.json"},
+        "fit_schema": FIT_SCHEMA,
+    }
+    results.update(fit.record)
+    return results

@@ -6,20 +6,25 @@ keys are collected as warnings (never silently ignored).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tomllib
+from brdfcap.fit.brdf_models import BRDF_MODELS
 
 from brdfcap.core.errors import CaptureError
 
 from .types import (
+    RGB,
     CameraModel,
     CaptureConfig,
     Correspondences,
     DirectionalLight,
     ImageSpec,
+    KnownLighting,
+    Material,
     NoiseModel,
     PointLight,
 )
@@ -32,7 +37,8 @@ CAPTURE_FORMAT = "brdfcap/1"
 KNOWN_KEYS: dict[str, set[str]] = {
     "": {"format", "name", "geometry", "camera", "lighting", "images", "noise", "material",
          "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor"},
-    "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask", "frame_check"},
+    "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask",
+                 "frame_check"},
     "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},
     "lighting": {"kind", "coefficients", "probe", "probe_lmax", "sources"},
     "images": {"file", "world_to_camera", "exposure", "light", "raw", "mask", "correspondences"},
@@ -54,11 +60,111 @@ def _get(table: dict, key: str, where: str, path: Path, types: tuple, required: 
     return value
 
 
+def _number(table: dict, key: str, where: str, path: Path, *, required: bool = False,
+            default: float | None = None, low: float | None = None, high: float | None = None,
+            low_open: bool = False, integer: bool = False) -> float | None:
+    """Return a finite number in ``[low, high]`` (``(low, high]`` if ``low_open``) or ``default``.
+
+    ``inf`` and ``nan`` (which TOML allows) are refused with the key and the file named.
+    """
+    if key not in table:
+        if required:
+            raise CaptureError(f"missing required key '{where}{key}'", path)
+        return default
+    v = table[key]
+    types = (int,) if integer else (int, float)
+    if isinstance(v, bool) or not isinstance(v, types):
+        raise CaptureError(f"key '{where}{key}' must be {'an integer' if integer else 'a number'}"
+                           f", got {v!r}", path)
+    if not math.isfinite(v):
+        raise CaptureError(f"key '{where}{key}' must be a finite number, got {v!r}", path)
+    if low is not None and (v <= low if low_open else v < low):
+        raise CaptureError(f"key '{where}{key}' must be {'>' if low_open else '>='} {low:g}, "
+                           f"got {v!r}", path)
+    if high is not None and v > high:
+        raise CaptureError(f"key '{where}{key}' must be <= {high:g}, got {v!r}", path)
+    return v
+
+
+def _rgb(value: Any, key: str, path: Path, low: float = 0.0) -> RGB:
+    """Parse a colour: a scalar (the same in R, G, B) or an RGB triplet; finite, >= ``low``."""
+    if isinstance(value, bool):
+        raise CaptureError(f"key '{key}' must be a number or [r, g, b], got {value!r}", path)
+    if isinstance(value, (int, float)):
+        value = [value] * 3
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise CaptureError(f"key '{key}' must be a finite number or [r, g, b], got {value!r}",
+                           path)
+    if np.any(arr < low):
+        raise CaptureError(f"key '{key}' must be >= {low:g} in every channel, got {value!r}",
+                           path)
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+def _parse_material(mat: dict, path: Path) -> Material:
+    """``[material]`` into :class:`Material` (colours scalar or RGB; exponents > 0)."""
+    model = _get(mat, "model", "material.", path, (str,), False, "lambertian")
+    if model not in BRDF_MODELS:
+        raise CaptureError(f"key 'material.model' must be one of {BRDF_MODELS}, got {model!r}",
+                           path)
+    col = {k: None if k not in mat else _rgb(mat[k], f"material.{k}", path)
+           for k in ("albedo", "ks", "f0")}
+    s = _number(mat, "s", "material.", path, low=0.0)
+    sigma = _number(mat, "sigma", "material.", path, low=0.0, low_open=True)
+    return Material(model=model, albedo=col["albedo"], ks=col["ks"], f0=col["f0"],
+                    s=None if s is None else float(s),
+                    sigma=None if sigma is None else float(sigma))
+
+
+def _parse_lighting(tab: dict, root: Path, path: Path) -> KnownLighting:
+    """``[lighting]`` into :class:`KnownLighting` (kind, known SH lighting, bright sources)."""
+    kind = _get(tab, "kind", "lighting.", path, (str,), required=False, default="environment")
+    if kind not in ("environment", "directional"):
+        raise CaptureError(
+            f"key 'lighting.kind' must be 'environment' or 'directional', got {kind!r}", path)
+    coeffs = cfile = probe = sources = None
+    if "coefficients" in tab:
+        c = tab["coefficients"]
+        if isinstance(c, str):  # brdfcap envmap-sh --json output
+            cfile = root / c
+        else:
+            try:
+                arr = np.asarray(c, dtype=np.float64)
+            except (TypeError, ValueError):
+                arr = np.zeros((0, 0))
+            k = arr.shape[0] if arr.ndim == 2 else 0
+            if arr.ndim != 2 or k == 0 or math.isqrt(k) ** 2 != k or not np.all(np.isfinite(arr)):
+                raise CaptureError("key 'lighting.coefficients' must be (lmax+1)^2 rows of "
+                                   "finite [r, g, b] (R&H 2001 real SH), or the name of a JSON "
+                                   "file written by 'brdfcap envmap-sh --json'", path)
+            coeffs = arr
+    if "probe" in tab:
+        probe = root / _get(tab, "probe", "lighting.", path, (str,))
+    lmax = _number(tab, "probe_lmax", "lighting.", path, low=0, high=200, integer=True)
+    if "sources" in tab:
+        try:
+            arr = np.asarray(tab["sources"], dtype=np.float64)
+        except (TypeError, ValueError):
+            arr = np.zeros((0, 0))
+        if arr.ndim != 2 or arr.shape[1:] != (3,) or not np.all(np.isfinite(arr)) or np.any(
+                np.linalg.norm(arr, axis=1) == 0):
+            raise CaptureError("key 'lighting.sources' must be [[x, y, z], ...]: non-zero "
+                               "finite directions toward the bright sources", path)
+        sources = arr
+    return KnownLighting(kind=kind, coefficients=coeffs, coefficients_file=cfile, probe=probe,
+                         probe_lmax=None if lmax is None else int(lmax), sources=sources)
+
+
 def _unknown(table: dict, section: str, where: str, warnings: list[str]) -> None:
     known = KNOWN_KEYS.get(section, set())
     for key in table:
         if key not in known:
-            warnings.append(f"unknown key '{where}{key}' ignored (known: {', '.join(sorted(known))})")
+            warnings.append(f"unknown key '{where}{key}' ignored "
+                            f"(known: {', '.join(sorted(known))})")
 
 
 def _vec3(value: Any, key: str, path: Path) -> np.ndarray:
@@ -73,18 +179,15 @@ def _parse_camera(tab: dict, path: Path) -> CameraModel:
     if model not in ("pinhole", "orthographic"):
         raise CaptureError(
             f"key 'camera.model' must be 'pinhole' or 'orthographic', got {model!r}", path)
-    width = _get(tab, "width", "camera.", path, (int,))
-    height = _get(tab, "height", "camera.", path, (int,))
-    if width <= 0 or height <= 0:
-        raise CaptureError("keys 'camera.width'/'camera.height' must be positive", path)
-    num = (int, float)
-    cx = float(_get(tab, "cx", "camera.", path, num, required=False, default=width / 2))
-    cy = float(_get(tab, "cy", "camera.", path, num, required=False, default=height / 2))
+    width = _number(tab, "width", "camera.", path, required=True, low=0, low_open=True,
+                    integer=True)
+    height = _number(tab, "height", "camera.", path, required=True, low=0, low_open=True,
+                     integer=True)
+    cx = float(_number(tab, "cx", "camera.", path, default=width / 2))
+    cy = float(_number(tab, "cy", "camera.", path, default=height / 2))
     if model == "pinhole":
-        fx = float(_get(tab, "fx", "camera.", path, num))
-        fy = float(_get(tab, "fy", "camera.", path, num, required=False, default=fx))
-        if fx <= 0 or fy <= 0:
-            raise CaptureError("keys 'camera.fx'/'camera.fy' must be positive", path)
+        fx = float(_number(tab, "fx", "camera.", path, required=True, low=0, low_open=True))
+        fy = float(_number(tab, "fy", "camera.", path, default=fx, low=0, low_open=True))
         dist = None
         if "distortion" in tab:
             d = np.asarray(_get(tab, "distortion", "camera.", path, (list,)), dtype=np.float64)
@@ -95,9 +198,7 @@ def _parse_camera(tab: dict, path: Path) -> CameraModel:
             dist = tuple(float(x) for x in d) if np.any(d != 0) else None
         return CameraModel("pinhole", width, height, fx=fx, fy=fy, cx=cx, cy=cy,
                            distortion=dist)
-    ps = float(_get(tab, "pixel_size", "camera.", path, num))
-    if ps <= 0:
-        raise CaptureError("key 'camera.pixel_size' must be positive", path)
+    ps = float(_number(tab, "pixel_size", "camera.", path, required=True, low=0, low_open=True))
     return CameraModel("orthographic", width, height, cx=cx, cy=cy, pixel_size=ps)
 
 
@@ -195,6 +296,9 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
     p = Path(capture_dir)
     toml_path = p if p.name == "capture.toml" else p / "capture.toml"
     root = toml_path.parent
+    if toml_path.exists() and not toml_path.is_file():
+        raise CaptureError("capture.toml is not a regular file (a directory?); it must be the "
+                           "capture's TOML description (see docs/capture-format.md)", toml_path)
     if not toml_path.is_file():
         raise CaptureError("no capture.toml here; a capture directory needs one "
                            "(see docs/capture-format.md)", toml_path)
@@ -203,6 +307,11 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
             doc = tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise CaptureError(f"malformed TOML: {exc}", toml_path) from None
+    except UnicodeDecodeError as exc:
+        raise CaptureError(f"not UTF-8 text (byte {exc.start}); save capture.toml as UTF-8",
+                           toml_path) from None
+    except OSError as exc:
+        raise CaptureError(f"cannot read capture.toml: {exc.strerror}", toml_path) from None
     warnings: list[str] = []
     _unknown(doc, "", "", warnings)
     fmt = doc.get("format")
@@ -221,63 +330,51 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
 
     light_tab = _get(doc, "lighting", "", toml_path, (dict,), required=False, default={})
     _unknown(light_tab, "lighting", "lighting.", warnings)
-    kind = _get(light_tab, "kind", "lighting.", toml_path, (str,), required=False,
-                default="environment")
-    if kind not in ("environment", "directional"):
-        raise CaptureError(
-            f"key 'lighting.kind' must be 'environment' or 'directional', got {kind!r}", toml_path)
+    lighting = _parse_lighting(light_tab, root, toml_path)
+    kind = lighting.kind
 
     noise_tab = _get(doc, "noise", "", toml_path, (dict,), required=False, default={})
     _unknown(noise_tab, "noise", "noise.", warnings)
-    num = (int, float)
-    noise = NoiseModel(
-        read=float(_get(noise_tab, "read", "noise.", toml_path, num, False, 0.0)),
-        gain=float(_get(noise_tab, "gain", "noise.", toml_path, num, False, 0.0)),
-        relative=float(_get(noise_tab, "relative", "noise.", toml_path, num, False, 0.0)),
-    )
-    if min(noise.read, noise.gain, noise.relative) < 0:
-        raise CaptureError("keys under [noise] must be >= 0", toml_path)
-    sat = _get(doc, "saturation", "", toml_path, num, required=False, default=None)
-    dark = _get(doc, "dark_floor", "", toml_path, num, required=False, default=None)
+    noise = NoiseModel(**{k: float(_number(noise_tab, k, "noise.", toml_path, default=0.0,
+                                           low=0.0)) for k in ("read", "gain", "relative")})
+    sat = _number(doc, "saturation", "", toml_path, low=0.0, low_open=True)
+    dark = _number(doc, "dark_floor", "", toml_path, low=0.0)
     if dark is not None and not 0 <= dark < (1.0 if sat is None else sat):
         raise CaptureError("key 'dark_floor' must be >= 0 and below 'saturation'", toml_path)
 
-    albedo = None
+    albedo = material = None
     if "material" in doc:
         mat = _get(doc, "material", "", toml_path, (dict,))
         _unknown(mat, "material", "material.", warnings)
-        model = mat.get("model", "lambertian")
-        from brdfcap.fit.brdf_models import BRDF_MODELS  # the fit reads the rest from raw
-
-        if model not in BRDF_MODELS:
-            raise CaptureError(f"key 'material.model' must be one of {BRDF_MODELS}, "
-                               f"got {model!r}", toml_path)
-        if "albedo" in mat:
-            albedo = _vec3(mat["albedo"], "material.albedo", toml_path)
+        material = _parse_material(mat, toml_path)
+        if material.albedo is not None:
+            albedo = np.asarray(material.albedo, dtype=np.float64)
 
     imgs = _get(doc, "images", "", toml_path, (list,))
     if not imgs:
         raise CaptureError("key 'images' is empty: list at least one [[images]] entry", toml_path)
     specs = []
+    seen: dict[Path, int] = {}
     for i, entry in enumerate(imgs):
         where = f"images[{i}]."
         if not isinstance(entry, dict):
             raise CaptureError(f"'images[{i}]' must be a table", toml_path)
         _unknown(entry, "images", where, warnings)
         file = root / _get(entry, "file", where, toml_path, (str,))
+        if file in seen:  # the same photograph twice would double its samples (issue #17)
+            raise CaptureError(f"'images[{i}]' repeats the file of 'images[{seen[file]}]' "
+                               f"({entry['file']}); list each photograph once", toml_path)
+        seen[file] = i
         pose = _parse_pose(_get(entry, "world_to_camera", where, toml_path, (list,)),
                            where + "world_to_camera", toml_path)
-        exposure = float(_get(entry, "exposure", where, toml_path, num, False, 1.0))
-        if not exposure > 0:
-            raise CaptureError(f"key '{where}exposure' must be > 0", toml_path)
+        exposure = float(_number(entry, "exposure", where, toml_path, default=1.0, low=0.0,
+                                 low_open=True))
         light = None
         if "light" in entry and "position" in _get(entry, "light", where, toml_path, (dict,)):
             lt = entry["light"]
             pos = _vec3(lt["position"], where + "light.position", toml_path)
-            inten = _vec3(lt.get("intensity", [1.0, 1.0, 1.0]), where + "light.intensity",
-                          toml_path)
-            if np.any(inten < 0):
-                raise CaptureError(f"key '{where}light.intensity' must be >= 0", toml_path)
+            inten = np.asarray(_rgb(lt.get("intensity", 1.0), where + "light.intensity",
+                                    toml_path))
             light = PointLight(position=pos, intensity=inten)
         elif "light" in entry:
             lt = _get(entry, "light", where, toml_path, (dict,))
@@ -285,7 +382,7 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
             nrm = np.linalg.norm(d)
             if nrm == 0:
                 raise CaptureError(f"key '{where}light.direction' is the zero vector", toml_path)
-            rad = _vec3(lt.get("radiance", [1.0, 1.0, 1.0]), where + "light.radiance", toml_path)
+            rad = np.asarray(_rgb(lt.get("radiance", 1.0), where + "light.radiance", toml_path))
             light = DirectionalLight(direction=d / nrm, radiance=rad)
         elif kind == "directional":
             raise CaptureError(f"lighting.kind is 'directional' but '{where}light' is missing",
@@ -303,5 +400,6 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
                          lighting_kind=kind, images=specs, noise=noise,
                          saturation=None if sat is None else float(sat), albedo=albedo,
                          warnings=warnings, raw=doc, normal_map=normal_map,
+                         material=material, lighting=lighting,
                          geometry_mask=geom_mask, frame_check=frame_check,
                          dark_floor=None if dark is None else float(dark), **mesh_opts)

@@ -117,7 +117,7 @@ def load_scene(path: str | Path) -> Scene:
         if "coefficients" in light:
             light_sh = np.asarray(light["coefficients"], dtype=np.float64)
         elif "probe" in light:
-            from brdfcap.fit import envmap
+            from brdfcap.capture import probes as envmap  # file I/O moved out of fit/
 
             lmax = int(light.get("probe_lmax", 8))
             probe = envmap.envmap_sh_from_file(path.parent / light["probe"], lmax)

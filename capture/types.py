@@ -19,6 +19,8 @@ __all__ = [
     "Correspondences",
     "NoiseModel",
     "ImageSpec",
+    "Material",
+    "KnownLighting",
     "CaptureConfig",
     "View",
     "Capture",
@@ -78,9 +80,10 @@ class PointLight:
 
 @dataclass(frozen=True)
 class Correspondences:
-    """2D-3D correspondences of one image (``[[images]].correspondences``): pixel coordinates
-    ``pixels (N, 2)`` as ``(u, v)`` in the continuous frame where pixel centres are at ``+0.5``,
-    and mesh/world ``points (N, 3)`` in world units.
+    """2D-3D correspondences of one image (``[[images]].correspondences``).
+
+    Pixel coordinates ``pixels (N, 2)`` as ``(u, v)`` in the continuous frame where pixel
+    centres are at ``+0.5``, and mesh/world ``points (N, 3)`` in world units.
     """
 
     pixels: np.ndarray
@@ -124,6 +127,58 @@ class ImageSpec:
     mask_file: Path | None = None  # foreground mask image (silhouette refinement)
 
 
+RGB = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Material:
+    """``[material]``: the sample's BRDF where it is known (``docs/capture-format.md``).
+
+    Colour quantities (``albedo``, ``ks``, ``f0``) are RGB triplets; ``capture.toml`` may give a
+    scalar, which means the same value in every channel. ``None``: key absent.
+    """
+
+    model: str = "lambertian"
+    albedo: RGB | None = None
+    ks: RGB | None = None
+    s: float | None = None
+    sigma: float | None = None
+    f0: RGB | None = None
+
+    def table(self) -> dict:
+        """Return the keys that were given, as a ``[material]`` table (RGB as lists)."""
+        out: dict = {"model": self.model}
+        for k in ("albedo", "ks", "s", "sigma", "f0"):
+            v = getattr(self, k)
+            if v is not None:
+                out[k] = list(v) if isinstance(v, tuple) else v
+        return out
+
+
+@dataclass(frozen=True)
+class KnownLighting:
+    """``[lighting]``: its kind and, when known, the environment lighting.
+
+    ``coefficients``: SH ``((lmax+1)², C)`` given inline; ``coefficients_file``: a JSON file
+    written by ``brdfcap envmap-sh --json`` (the ``lighting`` block layout of ``results.json``);
+    ``probe``: a lat-long HDR image projected to SH up to ``probe_lmax``; ``sources``: unit
+    directions ``(S, 3)`` toward bright sources (R&H decomposition).
+    """
+
+    kind: str = "environment"
+    coefficients: np.ndarray | None = None
+    coefficients_file: Path | None = None
+    probe: Path | None = None
+    probe_lmax: int | None = None
+    sources: np.ndarray | None = None
+
+    @property
+    def is_known(self) -> bool:
+        """True when the capture names its environment lighting."""
+        return (self.coefficients is not None or self.coefficients_file is not None
+                or self.probe is not None)
+
+
 @dataclass
 class CaptureConfig:
     """A validated ``capture.toml``."""
@@ -148,6 +203,8 @@ class CaptureConfig:
     geometry_mask: Path | None = None  # geometry.mask: object mask for the normal map
     frame_check: str = "error"  # geometry.frame_check: "error" | "warn" | "off"
     dark_floor: float | None = None  # raw value below which (all channels) a pixel is dark
+    material: Material | None = None  # [material], typed
+    lighting: KnownLighting = field(default_factory=KnownLighting)  # [lighting], typed
 
     @property
     def geometry_source(self) -> str:

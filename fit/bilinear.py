@@ -43,6 +43,7 @@ from brdfcap.core.errors import FitError
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import band_statistics, noise_level
 from .lighting import SHFit
+from .records import conditioning_json, lighting_json
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
 
@@ -73,8 +74,6 @@ class BilinearFit:
 
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
-        from .problems import conditioning_json, lighting_json
-
         def fin(v):
             return [x if math.isfinite(x) else None for x in v.tolist()]
         cond = conditioning_json(self.lighting)

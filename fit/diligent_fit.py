@@ -67,7 +67,8 @@ from .brdf_models import BRDFSpec, render_directional
 from .filters import lambda_l, phong_filter
 
 __all__ = ["phong_radiance", "PhongFit", "fit_lambert_phong", "BrdfSH", "measure_brdf_sh",
-           "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX"]
+           "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX",
+           "legendre_table"]
 
 #: Highest Legendre band of the measured SH-domain ρ̂. A Phong lobe of exponent ``s`` has
 #: ``Λ_l ρ̂_l ≈ exp(-l²/(2s))`` (R&H 2001, §3.2): l = 24 keeps exponents up to s ≈ 60 to 1e-2.
@@ -337,8 +338,8 @@ def phong_rho_hat(ks, s: float, lmax: int) -> np.ndarray:
     return rho[:, None] * np.atleast_1d(_np(ks))[None, :]
 
 
-def _legendre(x: np.ndarray, lmax: int) -> np.ndarray:
-    """``P_0..P_lmax`` at ``x`` by Bonnet's recursion, ``(lmax+1, len(x))`` float64.
+def legendre_table(x: np.ndarray, lmax: int) -> np.ndarray:
+    """Return ``P_0..P_lmax`` at ``x`` by Bonnet's recursion, ``(lmax+1, len(x))`` float64.
 
     Unnormalised ``P_l``; :func:`brdfcap.fit.sh.legendre_normalized` returns
     ``sqrt((2l+1)/(4π)) P_l`` by a different recurrence (equal to ~1e-14, not bit for bit).
@@ -387,7 +388,7 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
     y = np.asarray(y, np.float64)
     w = np.asarray(w, np.float64)
     ls = np.arange(lmax + 1)
-    a = (_legendre(x, lmax) * np.sqrt((2 * ls + 1) / (4 * math.pi))[:, None]).T  # (N, L+1)
+    a = (legendre_table(x, lmax) * np.sqrt((2 * ls + 1) / (4 * math.pi))[:, None]).T  # (N, L+1)
     nch = y.shape[1]
     rho = np.zeros((lmax + 1, nch))
     se = np.full((lmax + 1, nch), math.inf)

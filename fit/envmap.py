@@ -1,11 +1,11 @@
-"""Lat-long environment maps <-> real SH coefficients (projection, reconstruction, windowing).
+r"""Lat-long environment maps <-> real SH coefficients (projection, reconstruction, windowing).
 
 Frame of a lat-long map (also in ``docs/sh.md``)
 ------------------------------------------------
 World **+z is up**. An ``(H, W, C)`` image (row ``v`` from the top, column ``u`` from the left)
 samples the sphere at pixel centres
 
-.. math:: \\theta_v = \\pi\\,(v + \\tfrac12)/H,\\qquad \\phi_u = 2\\pi\\,(u + \\tfrac12)/W,
+.. math:: \theta_v = \pi\,(v + \tfrac12)/H,\qquad \phi_u = 2\pi\,(u + \tfrac12)/W,
 
 ``θ`` measured from +z (row 0 is next to the +z pole, the last row next to −z) and ``φ``
 measured from +x toward +y (direction ``(sinθ cosφ, sinθ sinφ, cosθ)``), so columns run
@@ -16,13 +16,13 @@ Quadrature
 ----------
 ``"fejer"`` (default): the rows are exactly the nodes of Fejér's first rule in
 ``z = cos θ`` and the columns a uniform rule in ``φ``, so
-:math:`L_{lm} = \\sum_{v,u} w_v\\,\\tfrac{2\\pi}{W}\\,L(\\theta_v,\\phi_u)\\,y_{lm}` is *exact*
+:math:`L_{lm} = \sum_{v,u} w_v\,\tfrac{2\pi}{W}\,L(\theta_v,\phi_u)\,y_{lm}` is *exact*
 for maps band-limited to ``lmax`` when ``H > 2 lmax`` and ``W > 2 lmax`` (Fejér 1933; Waldvogel
 2006, BIT 46, eq. 2.5 for the weights). ``"pixel"``: each pixel weighted by its exact solid
-angle :math:`\\Delta\\phi\\,(\\cos\\theta_{top} - \\cos\\theta_{bottom})` — the right rule for
-maps that are piecewise constant per pixel. Both sum to :math:`4\\pi`. Projection is
+angle :math:`\Delta\phi\,(\cos\theta_{top} - \cos\theta_{bottom})` — the right rule for
+maps that are piecewise constant per pixel. Both sum to :math:`4\pi`. Projection is
 R&H 2001 ("An efficient representation for irradiance environment maps") eq. 10,
-:math:`L_{lm} = \\int L(\\omega)\\,y_{lm}(\\omega)\\,d\\omega`, done separably (a cos/sin
+:math:`L_{lm} = \int L(\omega)\,y_{lm}(\omega)\,d\omega`, done separably (a cos/sin
 transform along rows, then the Legendre sum along columns).
 
 Windowing against ringing multiplies ``L_lm`` by ``h_l`` (Sloan 2008, "Stupid spherical
@@ -36,7 +36,6 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -48,15 +47,12 @@ __all__ = [
     "QUADRATURES",
     "WINDOWS",
     "EnvmapSH",
-    "read_envmap",
-    "write_envmap",
     "latlong_angles",
     "latlong_directions",
     "latlong_weights",
     "sh_window",
     "project_envmap",
     "reconstruct_envmap",
-    "envmap_sh_from_file",
 ]
 
 FRAME_DESCRIPTION = (
@@ -107,44 +103,21 @@ class EnvmapSH:
     notes: list[str] = field(default_factory=list)
 
     def to_json_dict(self) -> dict:
-        """JSON-ready dict (coefficients as nested lists, one row per (l, m))."""
-        rows = []
-        for l in range(self.lmax + 1):
-            for m in range(-l, l + 1):
-                rows.append({"l": l, "m": m, "index": l * (l + 1) + m,
-                             "value": [float(v) for v in self.coeffs[l * (l + 1) + m]]})
+        """JSON-ready dict in the layout of ``results.json``'s ``lighting`` block.
+
+        ``coefficients``: ``(lmax+1)²`` rows of per-channel values, index ``l(l+1)+m``; a
+        ``capture.toml`` may name such a file as ``lighting.coefficients`` (known lighting).
+        """
         return {
-            "source": self.source, "image_shape_hw": list(self.shape), "lmax": self.lmax,
+            "lmax": self.lmax, "sh": "rh2001-real", "frame": "world",
+            "coefficients": [[float(v) for v in row] for row in self.coeffs],
+            "source": self.source, "image_shape_hw": list(self.shape),
             "convention": "real SH, Ramamoorthi & Hanrahan 2001 signs (no Condon-Shortley "
                           "phase; Y11 ~ +x, Y1-1 ~ +y, Y10 ~ z), orthonormal, "
                           "index l(l+1)+m",
-            "frame": self.frame, "quadrature": self.quadrature, "window": self.window,
-            "channels": int(self.coeffs.shape[1]), "notes": self.notes, "coefficients": rows,
+            "latlong_frame": self.frame, "quadrature": self.quadrature, "window": self.window,
+            "channels": int(self.coeffs.shape[1]), "notes": self.notes,
         }
-
-
-# --------------------------------------------------------------------------------------------
-# I/O (OpenImageIO only)
-# --------------------------------------------------------------------------------------------
-def read_envmap(path: str | Path) -> torch.Tensor:
-    """Read a lat-long map (Radiance ``.hdr``, OpenEXR, ...) through OpenImageIO.
-
-    Returns ``(H, W, C)`` float64, linear values as stored (``C`` = file channels). The file
-    is read by :func:`brdfcap.capture.images.read_pixels`, the project's one image reader.
-    """
-    from brdfcap.capture.images import read_pixels
-
-    arr, _ = read_pixels(path, what="environment map", fix="check the light-probe path")
-    return torch.from_numpy(arr.astype(np.float64))
-
-
-def write_envmap(path: str | Path, image: torch.Tensor) -> None:
-    """Write ``(H, W, C)`` linear float data as ``.hdr`` / ``.exr`` (atomically, through
-    :func:`brdfcap.capture.images.write_image`).
-    """
-    from brdfcap.capture.images import write_image
-
-    write_image(path, image.detach().cpu().to(torch.float32).numpy())
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,7 +131,7 @@ def latlong_angles(height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def latlong_directions(height: int, width: int) -> torch.Tensor:
-    """Unit directions of the pixel centres, ``(H, W, 3)`` float64."""
+    """Return unit directions of the pixel centres, ``(H, W, 3)`` float64."""
     theta, phi = latlong_angles(height, width)
     st, ct = torch.sin(theta)[:, None], torch.cos(theta)[:, None]
     return torch.stack((st * torch.cos(phi)[None], st * torch.sin(phi)[None],
@@ -272,19 +245,3 @@ def reconstruct_envmap(coeffs: torch.Tensor, height: int, width: int) -> torch.T
             rb[:, 1: l + 1] += r2 * pl[:, 1:, None] * c[cc - l: cc].flip(0)[None]
     img = torch.einsum("hmc,mw->hwc", ra, cos_m) + torch.einsum("hmc,mw->hwc", rb, sin_m)
     return img[..., 0] if squeeze else img
-
-
-def envmap_sh_from_file(path: str | Path, lmax: int, quadrature: str = "fejer",
-                        window: str | None = "none", channels: int = 3) -> EnvmapSH:
-    """Read a probe through OpenImageIO and project its first ``channels`` channels."""
-    img = read_envmap(path)[..., :channels]
-    h, w = img.shape[:2]
-    notes = []
-    if h <= 2 * lmax or w <= 2 * lmax:
-        notes.append(f"image {h}x{w} under-resolves lmax={lmax} (needs H, W > 2*lmax)")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        coeffs = project_envmap(img, lmax, quadrature=quadrature, window=window)
-    win = {"hanning": "hann", "sigma": "lanczos", None: "none"}.get(window, window)
-    return EnvmapSH(coeffs=coeffs, lmax=lmax, quadrature=quadrature, window=win,
-                    source=str(path), shape=(h, w), notes=notes)

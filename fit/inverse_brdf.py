@@ -11,7 +11,7 @@ predicted ``l*`` is the first band whose lighting amplitude ``sqrt(mean_m L_lm²
 below the noise level ``ε``.
 
 Known lighting may be SH coefficients, a light probe file (lat-long HDR, projected by
-:func:`brdfcap.fit.envmap.envmap_sh_from_file`) or distant lights (then use
+:func:`brdfcap.capture.probes.envmap_sh_from_file`) or distant lights (then use
 :func:`fit_brdf_parametric` / :func:`fit_brdf_sh_directional`).
 
 Isotropic, view-dependent ``ρ̂_lpq`` (R&H 2001 eq. 16-17): :func:`fit_brdf_isotropic`, with the
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 
@@ -34,7 +33,7 @@ from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
 
-__all__ = ["BRDFSHFit", "fit_brdf_sh", "load_known_lighting", "fit_brdf_parametric",
+__all__ = ["BRDFSHFit", "fit_brdf_sh", "fit_brdf_parametric",
            "ParametricFit", "fit_brdf_isotropic", "isotropic_design", "local_frames"]
 
 
@@ -71,18 +70,6 @@ class BRDFSHFit:
                 "checks": self.checks}
 
 
-def load_known_lighting(source, lmax: int) -> torch.Tensor:
-    """Known lighting as SH ``((lmax+1)², C)``: a tensor/array of coefficients or a probe file."""
-    if isinstance(source, (str, Path)):
-        from .envmap import envmap_sh_from_file
-
-        return envmap_sh_from_file(source, lmax).coeffs.to(torch.float64)
-    x = torch.as_tensor(source, dtype=torch.float64)
-    if x.ndim != 2 or int(math.isqrt(x.shape[0])) ** 2 != x.shape[0]:
-        raise ValueError("SH lighting must be ((lmax+1)^2, C)")
-    return x
-
-
 def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
                 light_sh: torch.Tensor, lmax: int, variance: torch.Tensor | None = None,
                 diffuse: bool = True, rule: str = "gcv") -> BRDFSHFit:
@@ -95,7 +82,8 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     radiance : torch.Tensor
         ``(N, C)`` linear radiance (NaN = removed sample).
     light_sh : torch.Tensor
-        ``((lmax_L+1)², C)`` known lighting (:func:`load_known_lighting`). Bands of the BRDF
+        ``((lmax_L+1)², C)`` known lighting
+        (:func:`brdfcap.capture.probes.load_known_lighting`). Bands of the BRDF
         above ``lmax_L`` are not excited and come back flagged as not determined.
     lmax : int
         Highest BRDF band.

@@ -1,9 +1,9 @@
 """Report pieces for a measured BRDF: albedo map, BRDF slices vs samples, SH-domain ρ̂ spectrum.
 
-Used by the pipeline for directional-light captures whose BRDF is measured by
+Used by :mod:`brdfcap.reports.assemble` when problem ``brdf-map`` measured the BRDF with
 :func:`brdfcap.fit.diligent_fit.measure_brdf` (DiLiGenT-layout captures, ``docs/diligent.md``).
 Figures are returned as matplotlib figures; :func:`attach_brdf_measurement` turns them into data
-URIs, writes the albedo map next to ``results.json`` and fills ``results["brdf"]``.
+URIs and writes the albedo map next to ``results.json``.
 """
 
 from __future__ import annotations
@@ -12,11 +12,13 @@ import math
 from pathlib import Path
 
 import numpy as np
+from brdfcap.capture.images import write_image
+from brdfcap.fit.diligent_fit import legendre_table
 
 from .figures import display_encode, fig_to_data_uri, plt
 
 __all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_brdf_measurement",
-           "brdf_summary_lines"]
+           "attach_normal_map_info", "brdf_summary_lines"]
 
 _COLOURS = ("tab:red", "tab:green", "tab:blue")
 
@@ -65,8 +67,6 @@ def brdf_slice_figure(meas):
     SH-domain reconstruction ``Σ_l sqrt((2l+1)/4π) ρ̂_l P_l(cos α)``. Right: diffuse slice, the
     measured ``(B - B_spec)/(E k_d/π)`` against ``n·ωi`` (ideal Lambertian: the identity).
     """
-    from brdfcap.fit.diligent_fit import _legendre
-
     p = meas.phong
     fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.4))
     x = np.clip(meas.slice_x, -1, 1)
@@ -75,7 +75,7 @@ def brdf_slice_figure(meas):
     grid = np.linspace(0, 90, 400)
     cg = np.cos(np.radians(grid))
     ls = np.arange(meas.sh.lmax + 1)
-    pl = _legendre(cg, meas.sh.lmax) * np.sqrt((2 * ls + 1) / (4 * math.pi))[:, None]
+    pl = legendre_table(cg, meas.sh.lmax) * np.sqrt((2 * ls + 1) / (4 * math.pi))[:, None]
     ax = axes[0]
     for c in range(meas.slice_y.shape[1]):
         col = _COLOURS[c % 3]
@@ -107,8 +107,9 @@ def brdf_slice_figure(meas):
 
 
 def brdf_sh_figure(sh):
-    """Measured ``|ρ̂_l|`` ± std. error per band vs the fitted Phong lobe's analytic ``ρ̂_l``;
-    ill-conditioned bands shaded.
+    """Plot measured ``|ρ̂_l|`` ± std. error per band against the Phong fit's analytic ``ρ̂_l``.
+
+    Ill-conditioned bands are shaded.
     """
     fig, ax = plt.subplots(figsize=(6.0, 3.4))
     ls = np.arange(sh.lmax + 1)
@@ -155,35 +156,40 @@ def brdf_summary_lines(meas, geometry=None, results: dict | None = None) -> list
     return s
 
 
-def attach_brdf_measurement(results: dict, figures: dict, meas, geometry,
-                            out_dir: str | Path) -> None:
-    """Write ``albedo_map.exr`` (+ std. error) into ``out_dir`` and add the BRDF measurement to
-    ``results`` (``results["brdf"]``, the previous global-Lambertian record kept under
-    ``results["brdf"]["lambertian_global"]``) and its figures to ``figures``.
-    """
-    from brdfcap.capture.images import write_image
+def attach_normal_map_info(results: dict, geometry) -> None:
+    """Add a normal-map capture's geometry record, frame check and masking counts to ``results``.
 
-    out = Path(out_dir)
-    write_image(out / "albedo_map.exr", np.nan_to_num(meas.albedo_map, nan=0.0),
-                attributes={"brdfcap:quantity": "diffuse albedo k_d (0 = not fitted)"})
-    write_image(out / "albedo_stderr_map.exr", np.nan_to_num(meas.albedo_stderr_map, nan=0.0),
-                attributes={"brdfcap:quantity": "std. error of k_d, conditional on ks and s"})
-    prev = results.get("brdf")
-    rec = meas.results()
-    rec["lambertian_global"] = prev
-    results["brdf"] = rec
+    ``results["masking"]``: saturated and dark object-pixel observations summed over images.
+    """
     info = getattr(geometry, "info", None)
     if info is not None:
-        results.setdefault("geometry", {}).update(info)
+        if results.get("geometry") is None:
+            results["geometry"] = {}
+        results["geometry"].update(info)
     fc = getattr(geometry, "frame_check", None)
     if fc is not None:
-        results.setdefault("geometry", {})["frame_check"] = fc.as_dict()
+        if results.get("geometry") is None:
+            results["geometry"] = {}
+        results["geometry"]["frame_check"] = fc.as_dict()
     imgs = results.get("images", [])
     results["masking"] = {
         "saturated_in_object": int(sum(i.get("saturated_in_object", 0) for i in imgs)),
         "dark_in_object": int(sum(i.get("dark_in_object", 0) for i in imgs)),
         "object_pixel_observations": int(sum(i.get("object_pixels", 0) for i in imgs)),
     }
+
+
+def attach_brdf_measurement(figures: dict, meas, out_dir: str | Path) -> None:
+    """Write ``albedo_map.exr`` (+ std. error) into ``out_dir``; add the measurement's figures.
+
+    The measurement's ``results.json`` record is the ``brdf`` block of problem ``brdf-map``
+    (:meth:`brdfcap.fit.diligent_fit.BrdfMeasurement.results`).
+    """
+    out = Path(out_dir)
+    write_image(out / "albedo_map.exr", np.nan_to_num(meas.albedo_map, nan=0.0),
+                attributes={"brdfcap:quantity": "diffuse albedo k_d (0 = not fitted)"})
+    write_image(out / "albedo_stderr_map.exr", np.nan_to_num(meas.albedo_stderr_map, nan=0.0),
+                attributes={"brdfcap:quantity": "std. error of k_d, conditional on ks and s"})
     figures["albedo_map"] = fig_to_data_uri(albedo_map_figure(meas.albedo_map,
                                                               meas.albedo_stderr_map))
     figures["brdf_slices"] = fig_to_data_uri(brdf_slice_figure(meas))

@@ -11,7 +11,7 @@ import json
 import torch
 from click.testing import CliRunner
 
-from brdfcap.cmd_bench import (
+from brdfcap.baselines import (
     BenchConfig,
     make_scene,
     pareto_front,
@@ -59,7 +59,7 @@ def test_bench_grid_and_outputs(tmp_path):
     assert all(r["error"] < 0.02 for r in res["rows"])
     (b,) = res["baseline"]
     assert b["reached"] and b["adam_error"] <= 1.05 * b["closed_form_error"]
-    from brdfcap.cmd_bench import bench_cmd
+    from brdfcap.cli.bench import bench_cmd
 
     r = CliRunner().invoke(bench_cmd, ["--out", str(tmp_path), "--lmax", "2",
                                        "--samples", "1000", "--no-baseline"])

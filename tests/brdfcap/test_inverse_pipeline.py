@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import re
 
 import pytest
 from brdfcap.capture.simulate import simulate
@@ -80,6 +82,14 @@ def test_problem_brdf_directional_phong(captures, tmp_path):
     assert abs(p["s"] - 20.0) < 0.2
     assert max(abs(k - 0.3) for k in p["kd"]) < 3e-3 and max(abs(k - 0.5) for k in p["ks"]) < 5e-3
     assert "reciprocity_max_rel_asymmetry" in r["brdf"]["checks"]
+    # coefficients.csv: every fitted parameter with its standard error (issue #11 done-when)
+    rows = list(csv.DictReader((tmp_path / "o" / "coefficients.csv").open()))
+    got = {(x["quantity"], x["channel"]): x for x in rows}
+    assert set(got) == {("kd", c) for c in "RGB"} | {("ks", c) for c in "RGB"} | {("s", "")}
+    for (name, ch), row in got.items():
+        err = r["brdf"]["stderr"][name]
+        want = err[" RGB".index(ch) - 1] if ch else err
+        assert float(row["stderr"]) == pytest.approx(want, rel=1e-12) and want > 0
 
 
 def test_problem_both_reports_ambiguities(captures, tmp_path):
@@ -112,7 +122,7 @@ def test_problem_decomposition_round_trip():
 
     import torch
     from brdfcap.fit.decomposition import microfacet_decomposition
-    from brdfcap.fit.problems import solve_problem
+    from brdfcap.fit.problems import FitOptions, Known, solve_problem
 
     g = torch.Generator().manual_seed(0)
     n = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64),
@@ -128,12 +138,10 @@ def test_problem_decomposition_round_trip():
     f0 = torch.tensor([0.04, 0.04, 0.04], dtype=torch.float64)
     b = microfacet_decomposition(n, refl, slow, dirs, power, kd, f0, 0.1).total
     samples = SimpleNamespace(normal=n, wo=wo, reflected=refl, radiance=b, variance=None)
-    cfg = SimpleNamespace(lighting_kind="environment", toml_path="capture.toml", raw={
-        "material": {"model": "microfacet", "albedo": kd.tolist(), "f0": f0.tolist(),
-                     "sigma": 0.1},
-        "lighting": {"kind": "environment", "sources": dirs.tolist()}})
-    opts = SimpleNamespace(lmax=2, rule="none", brdf_lmax=8, brdf=None)
-    out = solve_problem("decomposition", samples, cfg, opts)
+    known = Known(source="capture.toml", material={"model": "microfacet", "albedo": kd.tolist(),
+                                                   "f0": f0.tolist(), "sigma": 0.1},
+                  sources=dirs)
+    out = solve_problem("decomposition", samples, known, FitOptions(lmax=2, rule="none"))
     est = torch.tensor(out.results["lighting"]["coefficients"])
     pw = torch.tensor(out.results["lighting"]["sources"]["power"])
     assert ((est - slow) / slow[0]).abs().max() < 1e-6
@@ -141,6 +149,8 @@ def test_problem_decomposition_round_trip():
     share = out.results["decomposition"]["share_of_radiance"]
     assert all(v > 0 for v in share.values())
     torch.testing.assert_close(out.prediction, b)
+    power_rows = [r for r in out.rows() if r["quantity"] == "source_power"]  # CSV: with stderr
+    assert len(power_rows) == 6 and all(r["stderr"] is not None for r in power_rows)
     assert out.results["lighting"]["determined"] and all(all(r) for r in
                                                          out.results["lighting"]["determined"])
 
@@ -151,3 +161,23 @@ def test_problem_decomposition_needs_sources(captures, tmp_path):
                                     "--problem", "decomposition"])
     assert res.exit_code != 0
     assert "Traceback" not in res.output and "capture.toml" in res.output
+
+
+def test_purely_specular_material_with_scalar_f0(tmp_path):
+    """`[material]` with albedo = [0, 0, 0] and a scalar f0 = 1.0 (a natural way to write a
+    purely specular microfacet) fits the lighting like the RGB form [1, 1, 1] (was an internal
+    IndexError in fit/solve.py).
+    """
+    scene = SCENE.replace('model = "phong"\nalbedo = [0.3, 0.3, 0.3]\nks = [0.5, 0.5, 0.5]\n'
+                          's = 20.0', 'model = "microfacet"\nalbedo = [0.0, 0.0, 0.0]\n'
+                          'f0 = [1.0, 1.0, 1.0]\nsigma = 0.3')
+    assert 'f0 = [1.0, 1.0, 1.0]' in scene
+    (tmp_path / "s.toml").write_text(scene.format(lighting=ENV))
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    toml = (cap / "capture.toml").read_text()
+    runs = {}
+    for name, f0 in (("rgb", "[1.0, 1.0, 1.0]"), ("scalar", "1.0")):
+        (cap / "capture.toml").write_text(re.sub(r"f0 = \[[^\]]*\]", f"f0 = {f0}", toml))
+        runs[name] = _run(cap, tmp_path / name, "--problem", "lighting", "--lmax", "2")
+    assert runs["scalar"]["brdf"]["parameters"]["f0"] == [1.0, 1.0, 1.0]
+    assert runs["scalar"]["lighting"]["coefficients"] == runs["rgb"]["lighting"]["coefficients"]

@@ -290,7 +290,7 @@ def test_probe_lit_scene_round_trip(tmp_path, reference):
     """A scene lit by a real HDR light probe (shared/reference/probes/uffizi.hdr, projected to
     SH by the simulator) comes back through the pipeline: bands 0-2 within 1% of L00.
     """
-    from brdfcap.fit.envmap import envmap_sh_from_file
+    from brdfcap.capture.probes import envmap_sh_from_file
 
     probe = reference / "probes" / "uffizi.hdr"
     (tmp_path / "s.toml").write_text(scene_text(

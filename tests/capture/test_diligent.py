@@ -250,6 +250,26 @@ def test_end_to_end_parametric_brdf_recovered_to_1pct(layout, capture_dir, tmp_p
     assert r["geometry"]["frame_check"]["verdict"] == "ok"
 
 
+def test_normal_map_capture_returns_the_requested_problem(capture_dir, tmp_path):
+    """`--problem brdf` on a normal-map capture returns the requested parametric fit (it was
+    overwritten by the Lambertian+Phong map and filed under brdf.lambertian_global); the
+    default `auto` still runs the per-pixel measurement, registered as problem `brdf-map`.
+    """
+    from brdfcap.pipeline import RunOptions, run_capture
+
+    out = run_capture(capture_dir, tmp_path / "brdf", RunOptions(problem="brdf", brdf="phong"))
+    r = out.results
+    assert r["fit"]["problem"] == "brdf" and r["brdf"]["model"] == "phong"
+    assert "lambertian_global" not in r["brdf"] and "albedo_map" not in r["brdf"]
+    assert set(r["brdf"]["stderr"]) == {"kd", "ks", "s"}
+    assert r["geometry"]["frame_check"]["verdict"] == "ok" and "masking" in r
+    assert not (tmp_path / "brdf" / "albedo_map.exr").exists()
+    assert out.fit.problem == "brdf" and out.fit.measurement is None
+    mapped = run_capture(capture_dir, tmp_path / "map", RunOptions(problem="brdf-map"))
+    assert mapped.results["brdf"]["model"] == "lambertian+phong"
+    assert (tmp_path / "map" / "albedo_map.exr").is_file()
+
+
 def test_cli_import_diligent(layout, tmp_path):
     from brdfcap.cli import main
 

@@ -8,16 +8,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from brdfcap.capture.probes import envmap_sh_from_file, read_envmap, write_envmap
 from brdfcap.fit.envmap import (
     FRAME_DESCRIPTION,
-    envmap_sh_from_file,
     latlong_directions,
     latlong_weights,
     project_envmap,
-    read_envmap,
     reconstruct_envmap,
     sh_window,
-    write_envmap,
 )
 from brdfcap.fit.filters import lambertian_filter, zonal_convolve
 from brdfcap.fit.sh import num_coeffs, real_sh, sh_index
@@ -173,7 +171,7 @@ def test_real_probe_projection():
 def test_cli_envmap_sh(tmp_path):
     from click.testing import CliRunner
 
-    from brdfcap.cmd_envmap import envmap_sh_cmd
+    from brdfcap.cli.envmap_sh import envmap_sh_cmd
 
     out = tmp_path / "sh.json"
     r = CliRunner().invoke(envmap_sh_cmd, [str(PROBES / "grace.hdr"), "--lmax", "2", "--json",
@@ -182,9 +180,9 @@ def test_cli_envmap_sh(tmp_path):
     doc = json.loads(r.output)
     assert doc == json.loads(out.read_text())
     assert doc["lmax"] == 2 and len(doc["coefficients"]) == 9 and doc["window"] == "none"
-    assert "+z up" in doc["frame"]
+    assert "+z up" in doc["latlong_frame"] and doc["sh"] == "rh2001-real"
     want = envmap_sh_from_file(PROBES / "grace.hdr", 2).coeffs
-    got = torch.tensor([row["value"] for row in doc["coefficients"]], dtype=torch.float64)
+    got = torch.tensor(doc["coefficients"], dtype=torch.float64)  # results.json lighting layout
     assert (got - want).abs().max() < 1e-12
     r = CliRunner().invoke(envmap_sh_cmd, [str(PROBES / "grace.hdr"), "--lmax", "1"])
     assert r.exit_code == 0 and "R" in r.output and r.output.count("\n") >= 4 + 4

@@ -120,8 +120,8 @@ def test_sh_filter_unexcited_bands_flagged():
 
 def test_sh_filter_with_a_light_probe_file(tmp_path):
     """Known lighting given as a lat-long HDR probe (projected by fit.envmap): same filter."""
-    from brdfcap.fit.envmap import reconstruct_envmap, write_envmap
-    from brdfcap.fit.inverse_brdf import load_known_lighting
+    from brdfcap.capture.probes import load_known_lighting, write_envmap
+    from brdfcap.fit.envmap import reconstruct_envmap
 
     g = torch.Generator().manual_seed(4)
     light = random_lighting(6, g, dc=1.0, amp=0.2)

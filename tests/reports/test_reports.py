@@ -57,7 +57,7 @@ def test_coefficients_csv_round_trips_results(run_out):
     """Every lighting coefficient and its stderr appear in coefficients.csv with its (l, m)."""
     res = run_out.results
     text = (run_out.results_path.parent / "coefficients.csv").read_text()
-    assert text == coefficients_csv(res)
+    assert text == coefficients_csv(run_out.fit)
     rows = list(csv.DictReader(io.StringIO(text)))
     light = [r for r in rows if r["quantity"] == "lighting"]
     k = (res["lighting"]["lmax"] + 1) ** 2
@@ -72,18 +72,33 @@ def test_coefficients_csv_round_trips_results(run_out):
 
 
 def test_csv_marks_undetermined_coefficients_inf():
-    """A coefficient the data do not determine has stderr inf and determined false."""
-    res = {"lighting": {"coefficients": [[1.0], [0.0]], "stderr": [[0.1], [None]],
-                        "determined": [[True], [False]]}, "brdf": {"parameters": {}}}
-    rows = coefficient_rows(res)
+    """A coefficient the data do not determine has stderr inf and determined false; every
+    estimate (per-channel, scalar, per-band) is one row per number with its standard error.
+    """
+    import torch
+    from brdfcap.fit.result import Estimate, FitResult
+
+    light = Estimate("lighting", torch.tensor([[1.0], [0.0], [0.0], [0.0]]),
+                     torch.tensor([[0.1], [math.inf], [0.2], [0.2]]), "sh",
+                     determined=torch.tensor([[True], [False], [True], [True]]))
+    fit = FitResult("test", [light], torch.zeros(1, 1))
+    rows = coefficient_rows(fit)
     assert rows[1]["stderr"] == math.inf and rows[1]["determined"] is False
-    assert "inf,false" in coefficients_csv(res)
-    res["brdf"]["parameters"] = {"kd": [0.5, 0.6, 0.7], "s": 20.0, "s_stderr": 0.5,
-                                 "model_note": "text is not a coefficient"}
-    rows = [r for r in coefficient_rows(res) if r["quantity"] != "lighting"]
-    assert [(r["quantity"], r["channel"]) for r in rows] == [("kd", "R"), ("kd", "G"),
-                                                             ("kd", "B"), ("s", "")]
-    assert rows[-1]["stderr"] == 0.5
+    assert [(r["l"], r["m"]) for r in rows] == [(0, 0), (1, -1), (1, 0), (1, 1)]
+    assert "inf,false" in coefficients_csv(fit)
+    fit.estimates += [Estimate("kd", torch.tensor([0.5, 0.6, 0.7]),
+                               torch.tensor([0.01] * 3, dtype=torch.float64)),
+                      Estimate("s", torch.tensor(20.0), torch.tensor(0.5), "scalar"),
+                      Estimate("brdf_filter", torch.tensor([1.0, 0.5]), torch.tensor([0., 0.1]),
+                               "band"),
+                      Estimate("albedo", torch.ones(3), None, known=True)]
+    rows = [r for r in coefficient_rows(fit) if r["quantity"] != "lighting"]
+    assert [(r["quantity"], r["channel"], r["l"]) for r in rows] == [
+        ("kd", "R", None), ("kd", "G", None), ("kd", "B", None), ("s", "", None),
+        ("brdf_filter", "", 0), ("brdf_filter", "", 1), ("albedo", "R", None),
+        ("albedo", "G", None), ("albedo", "B", None)]
+    assert [r["stderr"] for r in rows[:5]] == [0.01, 0.01, 0.01, 0.5, 0.0]
+    assert all(r["stderr"] is None for r in rows[-3:])  # given, not recovered
 
 
 def test_report_has_every_section_and_no_external_resources(run_out):
@@ -144,7 +159,7 @@ def test_bench_section_renders_in_report_and_index(run_out, tmp_path):
     """With --bench the report and index carry the accuracy-vs-time table and Pareto plot."""
     from brdfcap.reports.html import ReportInputs, render_report
 
-    from brdfcap.cmd_bench import report_section
+    from brdfcap.baselines import report_section
 
     rows = [{"solver": s, "dtype": "float64", "device": "cpu", "lmax": 2, "samples": 1000,
              "error": e, "time_s": t, "peak_mem_mb": 1.0}

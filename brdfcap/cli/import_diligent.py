@@ -9,7 +9,10 @@ from pathlib import Path
 
 import click
 
+from brdfcap.capture.diligent import DEFAULT_DARK_FLOOR, DEFAULT_SATURATION, import_diligent
 from brdfcap.core.errors import BrdfcapError
+
+from .common import fail
 
 __all__ = ["import_diligent_cmd"]
 
@@ -34,8 +37,6 @@ def import_diligent_cmd(obj, src: Path, out_capture: Path, no_copy: bool,
 
     Then run it with ``brdfcap run OUT_CAPTURE --out RESULTS``.
     """
-    from brdfcap.capture.diligent import DEFAULT_DARK_FLOOR, DEFAULT_SATURATION, import_diligent
-
     try:
         out = import_diligent(
             src, out_capture, copy_images=not no_copy,
@@ -43,7 +44,5 @@ def import_diligent_cmd(obj, src: Path, out_capture: Path, no_copy: bool,
             dark_floor=DEFAULT_DARK_FLOOR if dark_floor is None else (dark_floor or None),
             name=name, frame_check=frame_check)
     except BrdfcapError as exc:
-        from brdfcap.cli import _fail
-
-        _fail(exc, bool(getattr(obj, "debug", False)))
+        fail(exc, bool(getattr(obj, "debug", False)))
     click.echo(f"wrote capture {out} (run it: brdfcap run {out} --out RESULTS)")

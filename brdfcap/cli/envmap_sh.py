@@ -1,6 +1,8 @@
 """``brdfcap envmap-sh``: SH coefficients of a lat-long light probe (issue 3).
 
-Frame and convention: see :mod:`brdfcap.fit.envmap` and ``docs/sh.md`` — world +z up, image row
+The JSON (``--json``) has the layout of ``results.json``'s ``lighting`` block, so a
+``capture.toml`` may name it as known lighting (``lighting.coefficients = "sh.json"``). Frame and
+convention: see :mod:`brdfcap.fit.envmap` and ``docs/sh.md`` — world +z up, image row
 0 at the +z pole, column ``u`` at ``φ = 2π(u+½)/W`` from +x toward +y; real SH in the R&H 2001
 signs, index ``l(l+1)+m``.
 """
@@ -11,6 +13,11 @@ import json
 from pathlib import Path
 
 import click
+
+from brdfcap.capture.probes import envmap_sh_from_file
+from brdfcap.core.errors import BrdfcapError
+
+__all__ = ["envmap_sh_cmd"]
 
 
 @click.command("envmap-sh")
@@ -28,9 +35,6 @@ import click
 def envmap_sh_cmd(probe: Path, lmax: int, as_json: bool, out: Path | None, window: str,
                   quadrature: str) -> None:
     """Project the lat-long environment map PROBE (.hdr / .exr) onto real SH up to --lmax."""
-    from brdfcap.core.errors import BrdfcapError
-    from brdfcap.fit.envmap import envmap_sh_from_file
-
     if not probe.is_file():
         raise click.ClickException(str(BrdfcapError("no such file (give a lat-long .hdr or "
                                                     ".exr light probe)", probe)))

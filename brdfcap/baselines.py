@@ -1,4 +1,7 @@
-"""``brdfcap bench``: what accuracy costs in time (and memory) for SH inverse lighting.
+"""What accuracy costs in time and memory for SH inverse lighting (``brdfcap bench``).
+
+The solvers, the Adam baseline and the grid behind the ``bench`` command
+(:mod:`brdfcap.cli.bench`); they live outside the CLI package so reports and ``bench/`` reuse them.
 
 A fixed synthetic scene — a Lambertian sphere seen from all around under the Grace Cathedral
 lighting of Ramamoorthi & Hanrahan (2001, Table 1), 1% relative + 0.002 absolute pixel noise —
@@ -45,13 +48,12 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import click
 import torch
 
 __all__ = ["BenchConfig", "run_bench", "bench_for_report", "format_table", "pareto_figure",
            "make_scene", "rel_error", "solve_closed_form", "solve_cgls", "solve_pipeline",
            "adam_baseline", "pareto_front", "report_section",
-           "bench_cmd", "DEFAULT_LMAX", "DEFAULT_SAMPLES", "FULL_SAMPLES"]
+           "validate_solvers", "DEFAULT_LMAX", "DEFAULT_SAMPLES", "FULL_SAMPLES"]
 
 DEFAULT_LMAX = (2, 4, 8, 16, 32)
 DEFAULT_SAMPLES = (1_000, 10_000, 100_000)
@@ -208,7 +210,7 @@ def validate_solvers(names) -> tuple[str, ...]:
     """Reject unknown solver names with the list of valid ones."""
     bad = [s for s in names if s not in SOLVERS]
     if bad:
-        raise click.BadParameter(f"unknown solver(s) {bad}; valid: {sorted(SOLVERS)}")
+        raise ValueError(f"unknown solver(s) {bad}; valid: {sorted(SOLVERS)}")
     return tuple(names)
 
 
@@ -591,49 +593,3 @@ def write_outputs(result: dict, out: Path, command: str) -> dict[str, Path]:
         '{% include "bench_section.html" %}</body></html>').render(bench=sec)
     paths["html"] = write_text_atomic(out / "bench.html", html)
     return paths
-
-
-def _ints(text: str) -> tuple[int, ...]:
-    return tuple(int(float(x)) for x in text.split(",") if x.strip())
-
-
-@click.command("bench")
-@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench-out"),
-              show_default=True, help="Folder for bench.json/.csv/.md/.html and pareto.png.")
-@click.option("--full", is_flag=True, help="Add 10^6 samples and run every cell regardless of "
-              "cost (tens of minutes on 2 cores).")
-@click.option("--lmax", "lmax", default=",".join(map(str, DEFAULT_LMAX)), show_default=True,
-              help="Comma-separated lmax values.")
-@click.option("--samples", default=None, help="Comma-separated sample counts (default "
-              "1e3,1e4,1e5; with --full also 1e6).")
-@click.option("--solvers", default="closed-form,iterative,pipeline", show_default=True,
-              help="Comma-separated solvers: closed-form, iterative, pipeline.")
-@click.option("--device", "devices", default=None,
-              help="Comma-separated devices (default: cpu, plus cuda when available).")
-@click.option("--baseline-cap", type=float, default=30.0, show_default=True,
-              help="Seconds the Adam baseline may run per cell before giving up.")
-@click.option("--no-baseline", is_flag=True, help="Skip the Adam-through-renderer baseline.")
-@click.option("--threads", type=click.IntRange(1, 1024), default=1, show_default=True,
-              help="torch CPU threads for every solver (1 gives stable timings on a busy "
-                   "machine).")
-def bench_cmd(out: Path, full: bool, lmax: str, samples: str | None, solvers: str,
-              devices: str | None, baseline_cap: float, no_baseline: bool, threads: int) -> None:
-    """Measure what accuracy costs in time: SH inverse-lighting error vs time and memory."""
-    import sys
-
-    devs = tuple(devices.split(",")) if devices else (
-        ("cpu", "cuda") if torch.cuda.is_available() else ("cpu",))
-    cfg = BenchConfig(lmax=_ints(lmax), samples=_ints(samples) if samples else (
-        FULL_SAMPLES if full else DEFAULT_SAMPLES), devices=devs,
-        solvers=validate_solvers(tuple(s.strip() for s in solvers.split(","))),
-        baseline_cap_s=baseline_cap, full=full, threads=threads,
-        baseline_lmax=() if no_baseline else BenchConfig.baseline_lmax)
-    command = "brdfcap bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else "brdfcap bench"
-    click.echo(f"brdfcap bench on {machine_description(threads)}", err=True)
-    t0 = time.perf_counter()
-    result = run_bench(cfg, echo=lambda s: click.echo(s, err=True))
-    result["wall_s"] = time.perf_counter() - t0
-    paths = write_outputs(result, out, command)
-    click.echo(format_table(result))
-    click.echo(f"\n{len(result['rows'])} cells in {result['wall_s']:.0f} s; wrote "
-               + ", ".join(str(p) for p in paths.values()))

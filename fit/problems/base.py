@@ -1,0 +1,180 @@
+"""The problem registry: what a problem receives, what it returns, how it is registered.
+
+A problem is a function ``(samples, known, options) -> FitResult``:
+
+* ``samples`` — :class:`brdfcap.reconstruct.geometry.Samples` (normals, view/light directions,
+  radiance, variance of every usable pixel);
+* ``known`` — :class:`Known`, what the capture states as known (material, lighting, sources),
+  already validated and loaded by the capture stage (problems read no files and no TOML);
+* ``options`` — :class:`FitOptions`, the run's choices (bands, BRDF model, Tikhonov rule).
+
+Registering (:func:`register_problem`) makes it a ``brdfcap run --problem`` choice; an unknown
+name is rejected with the list of valid ones (colour-science's dispatcher pattern).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+
+from brdfcap.core.errors import FitError
+
+from ..brdf_models import BRDF_MODELS, BRDFSpec
+from ..result import Estimate, FitResult
+
+__all__ = ["FitOptions", "Known", "Problem", "PROBLEMS", "register_problem", "get_problem",
+           "brdf_from_material", "need_environment", "need_known_lighting", "lighting_estimate",
+           "material_estimates"]
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Choices of a run that change the fit (``brdfcap run`` options).
+
+    ``lmax``: highest band of recovered lighting; ``brdf``: BRDF model overriding
+    ``[material].model``; ``rule``: Tikhonov weight rule (:mod:`brdfcap.fit.solve`);
+    ``brdf_lmax``: highest band of SH-domain BRDF filters.
+    """
+
+    lmax: int = 2
+    brdf: str | None = None
+    rule: str = "gcv"
+    brdf_lmax: int = 8
+
+
+@dataclass(frozen=True)
+class Known:
+    """What the capture states as known, validated by ``brdfcap.capture.config``.
+
+    ``source``: the file named in error messages (``capture.toml``); ``material``: the
+    ``[material]`` table (colours as RGB lists) or ``None``; ``lighting_sh``: known environment
+    lighting ``((lmax+1)², C)`` (loaded only for problems that need it); ``sources``: unit
+    directions ``(S, 3)`` toward bright sources; ``noise``: the capture's noise model (has
+    ``is_known`` and ``variance``); ``geometry_source``: ``mesh`` or ``normal_map``;
+    ``image_shape``: ``(H, W)`` of the images (per-pixel maps).
+    """
+
+    source: Path | str | None = None
+    lighting_kind: str = "environment"
+    material: dict | None = None
+    lighting_sh: torch.Tensor | None = None
+    sources: torch.Tensor | None = None
+    noise: Any = None
+    geometry_source: str = "mesh"
+    image_shape: tuple[int, int] | None = None
+    lighting_named: bool = False  # capture.toml names its lighting (known-lighting problems)
+
+    @property
+    def albedo(self) -> torch.Tensor | None:
+        """Known Lambertian albedo ``(3,)`` from ``[material].albedo``, else ``None``."""
+        if not self.material or self.material.get("albedo") is None:
+            return None
+        return torch.as_tensor(self.material["albedo"], dtype=torch.float64)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A registered problem: its name, its function and what it needs known.
+
+    ``needs_known_lighting``: the pipeline loads :attr:`Known.lighting_sh` before calling it.
+    ``description``: one line for ``--help`` and ``docs/fitting.md``.
+    """
+
+    name: str
+    solve: Callable[[Any, Known, FitOptions], FitResult]
+    description: str
+    needs_known_lighting: bool = False
+    aliases: tuple[str, ...] = field(default_factory=tuple)
+
+
+#: name -> :class:`Problem`, in registration order (the CLI's ``--problem`` choices).
+PROBLEMS: dict[str, Problem] = {}
+
+
+def register_problem(problem: Problem) -> Problem:
+    """Add ``problem`` to :data:`PROBLEMS` (a name may be registered once)."""
+    if problem.name in PROBLEMS:
+        raise ValueError(f"problem {problem.name!r} is already registered")
+    PROBLEMS[problem.name] = problem
+    return problem
+
+
+def get_problem(name: str) -> Problem:
+    """Return the registered problem ``name``; unknown names raise with the valid ones listed."""
+    if name not in PROBLEMS:
+        raise FitError(f"unknown problem {name!r}; valid: {sorted(PROBLEMS)}")
+    return PROBLEMS[name]
+
+
+def _rgb(v, n: int = 3) -> list[float]:
+    """Return a scalar or per-channel value as ``n`` floats (a scalar means every channel)."""
+    t = torch.as_tensor(v, dtype=torch.float64).reshape(-1)
+    return (t.expand(n) if t.numel() == 1 else t).tolist()
+
+
+def brdf_from_material(material: dict | None, model: str | None = None) -> BRDFSpec | None:
+    """:class:`BRDFSpec` from a ``[material]`` table (``None`` when absent).
+
+    Colour quantities (``albedo``, ``ks``, ``f0``) may be scalars (the same in every channel)
+    or RGB triplets.
+
+    Examples
+    --------
+    >>> spec = brdf_from_material({"model": "microfacet", "albedo": 0, "f0": 1.0, "sigma": 0.2})
+    >>> spec.f0.tolist(), spec.kd.tolist()
+    ([1.0, 1.0, 1.0], [0.0, 0.0, 0.0])
+    """
+    if not material:
+        return None
+    m = model or material.get("model", "lambertian")
+    if m not in BRDF_MODELS:
+        raise FitError(f"unknown BRDF model {m!r}; valid: {BRDF_MODELS}")
+    return BRDFSpec(m, kd=_rgb(material.get("albedo", 1.0)), ks=_rgb(material.get("ks", 0.0)),
+                    s=float(material.get("s", 0.0)), sigma=float(material.get("sigma", 0.0)),
+                    f0=_rgb(material.get("f0", 0.0)))
+
+
+def need_environment(known: Known) -> None:
+    """Raise unless the capture is environment-lit."""
+    if known.lighting_kind != "environment":
+        raise FitError("this problem needs an environment-lit capture (lighting.kind = "
+                       "'environment')", known.source)
+
+
+def need_known_lighting(known: Known, problem: str) -> torch.Tensor:
+    """Return the known SH lighting ``((lmax+1)², C)``; a one-line error names keys to add."""
+    if known.lighting_sh is None:
+        raise FitError(f"problem '{problem}' under environment lighting needs the lighting "
+                       "known: add lighting.coefficients (SH, R&H 2001 real basis, or a JSON "
+                       "file from 'brdfcap envmap-sh --json') or lighting.probe (lat-long HDR "
+                       "image) to capture.toml", known.source)
+    return known.lighting_sh.to(torch.float64)
+
+
+def lighting_estimate(fit) -> Estimate:
+    """Return the :class:`Estimate` of an :class:`brdfcap.fit.lighting.SHFit` (``sh`` layout)."""
+    cov = None
+    sol = getattr(fit, "solution", None)
+    if sol is not None and getattr(sol, "covariance", None) is not None:
+        cov = sol.covariance
+    return Estimate("lighting", fit.coefficients, fit.stderr, "sh", determined=fit.determined,
+                    covariance=cov, note="SH lighting L_lm, R&H 2001 real basis, world frame")
+
+
+def material_estimates(spec: BRDFSpec | None, params: dict) -> list[Estimate]:
+    """Known material parameters as :class:`Estimate` rows with ``known=True`` (no stderr)."""
+    out = []
+    for name, val in params.items():
+        if isinstance(val, bool) or val is None:
+            continue
+        if isinstance(val, (int, float)):
+            out.append(Estimate(name, torch.tensor(float(val), dtype=torch.float64), None,
+                                "scalar", known=True))
+        elif isinstance(val, list) and val and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) for x in val):
+            out.append(Estimate(name, torch.tensor(val, dtype=torch.float64), None, "channel",
+                                known=True))
+    return out

@@ -1,0 +1,100 @@
+"""Problem ``brdf`` (R&H 2001 problem 2): the BRDF with the lighting known.
+
+Under known distant lights a parametric model is fitted (:mod:`brdfcap.fit.parametric`); under
+known environment lighting the radially symmetric SH-domain filter ``Â_l`` and ``kd``
+(:func:`brdfcap.fit.inverse_brdf.fit_brdf_sh`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from brdfcap.core.errors import FitError
+
+from ..brdf_models import diffuse_filter, render_directional
+from ..inverse_brdf import fit_brdf_sh
+from ..parametric import fit_brdf_parametric
+from ..records import conditioning_json
+from ..result import Estimate, FitResult
+from ..sh import band_of_index, real_sh
+from .base import FitOptions, Known, Problem, need_known_lighting, register_problem
+
+__all__ = ["problem_brdf", "fmt"]
+
+
+def fmt(v: torch.Tensor) -> str:
+    """Format a scalar or per-channel tensor as short text (``0.5`` or ``[0.5, 0.6, 0.7]``)."""
+    v = v.reshape(-1)
+    return ("[" + ", ".join(f"{float(x):.4g}" for x in v) + "]") if v.numel() > 1 else \
+        f"{float(v):.4g}"
+
+
+def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
+    if samples.wi is None:
+        raise FitError("directional capture without per-image lights", known.source)
+    model = opts.brdf or (known.material or {}).get("model", "phong")
+    if model == "mirror":
+        raise FitError("a mirror BRDF cannot be fitted from distant point lights (it "
+                       "reflects them into no pixel); use --brdf phong or microfacet",
+                       known.source)
+    f = fit_brdf_parametric(samples.normal, samples.wo, samples.wi, samples.light_radiance,
+                            samples.radiance, samples.variance, model=model)
+    pred = render_directional(f.spec, samples.normal, samples.wo, samples.wi,
+                              samples.light_radiance)
+    rec = {"brdf": {"model": model, "parameters": f.spec.parameters(),
+                    "stderr": {k: v.tolist() for k, v in f.stderr.items()},
+                    "chi2_reduced": f.chi2_reduced, "checks": f.checks,
+                    "source": "fitted (known distant lights)", "parametric": f.to_json()}}
+    summ = [f"Problem 2 (inverse BRDF, known distant lights): {model} fit "
+            + ", ".join(f"{k} = {fmt(v)} ± {fmt(f.stderr[k])}"
+                        for k, v in f.values.items()) + "."]
+    est = []
+    for k, v in f.values.items():
+        idx = [i for i, n in enumerate(f.names) if n.split("[")[0] == k]
+        cov = f.covariance[idx][:, idx] if idx else None
+        est.append(Estimate(k, v, f.stderr[k], "scalar" if v.ndim == 0 else "channel",
+                            covariance=cov))
+    return FitResult("brdf", est, pred, rec, summary=summ)
+
+
+def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
+    light = need_known_lighting(known, "brdf")
+    fit = fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light,
+                      opts.brdf_lmax, variance=samples.variance, rule=opts.rule)
+    lw = max(int(math.isqrt(light.shape[0])) - 1, fit.lmax)
+    lp = torch.zeros((lw + 1) ** 2, light.shape[1], dtype=torch.float64)
+    lp[: light.shape[0]] = light
+    band = band_of_index(lw)
+    fpad = torch.zeros(lw + 1, light.shape[1], dtype=torch.float64)
+    fpad[: fit.lmax + 1] = fit.filter
+    pred = real_sh(samples.reflected, lw) @ (fpad[band] * lp)
+    if fit.kd is not None:
+        pred = pred + (real_sh(samples.normal, lw) @ (diffuse_filter(lw)[band][:, None] * lp)
+                       ) * fit.kd
+    rec = {"brdf": {"model": "sh-radial", "parameters": {"kd": None if fit.kd is None
+                                                         else fit.kd.tolist()},
+                    "sh": fit.to_json(), "source": "fitted (known SH lighting)"},
+           "conditioning": conditioning_json(None, fit)}
+    summ = [f"Problem 2 (inverse BRDF, known SH lighting): radial filter to l = {fit.lmax}; "
+            f"first ill-conditioned band {fit.ill_conditioned_from_l} measured, "
+            f"{fit.prediction['first_ill_band']} predicted from the lighting spectrum."]
+    est = [Estimate("brdf_filter", fit.filter, fit.filter_stderr, "band",
+                    determined=fit.determined, note="A_l = Lambda_l rho_l (R&H 2001 eq. 12)")]
+    if fit.kd is not None:
+        est.append(Estimate("kd", fit.kd, fit.kd_stderr, "channel"))
+    return FitResult("brdf", est, pred, rec, summary=summ)
+
+
+def problem_brdf(samples, known: Known, opts: FitOptions) -> FitResult:
+    """Problem 2: inverse BRDF with known lighting (distant lights or SH coefficients)."""
+    if known.lighting_kind == "directional" or samples.wi is not None:
+        return _directional(samples, known, opts)
+    return _sh(samples, known, opts)
+
+
+register_problem(Problem(
+    "brdf", problem_brdf,
+    "the BRDF with the lighting known: parametric (distant lights) or radial SH filter "
+    "(known SH lighting)", needs_known_lighting=True))

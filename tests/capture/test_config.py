@@ -1,0 +1,124 @@
+"""capture.toml validation (issue #11 item 2, issue #17 rows 5, 7, 14): every bad input is one
+CaptureError naming the file and the key; colours are scalar or RGB; typed tables.
+"""
+
+from __future__ import annotations
+
+import pytest
+from brdfcap.capture.config import load_config
+
+from brdfcap.core.errors import CaptureError
+
+BASE = """
+format = "brdfcap/1"
+saturation = 0.99
+[geometry]
+mesh = "sphere.ply"
+[camera]
+model = "pinhole"
+width = 32
+height = 32
+fx = 40.0
+[noise]
+read = 0.001
+relative = 0.01
+[material]
+model = "microfacet"
+albedo = [0.5, 0.4, 0.3]
+f0 = 0.04
+sigma = 0.2
+[lighting]
+kind = "environment"
+sources = [[0.0, 0.0, 2.0]]
+[[images]]
+file = "a.exr"
+exposure = 1.0
+world_to_camera = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0]]
+[[images]]
+file = "b.exr"
+world_to_camera = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 5.0]]
+"""
+
+
+def _write(tmp_path, text: str):
+    (tmp_path / "capture.toml").write_text(text)
+    return tmp_path
+
+
+def _one_line_error(tmp_path, text: str, key: str):
+    with pytest.raises(CaptureError) as exc:
+        load_config(_write(tmp_path, text))
+    msg = str(exc.value)
+    assert "\n" not in msg and "capture.toml" in msg and key in msg, msg
+    return msg
+
+
+def test_typed_tables_and_scalar_colours(tmp_path):
+    """[material] and [lighting] come back typed; a scalar colour means every channel."""
+    cfg = load_config(_write(tmp_path, BASE))
+    assert cfg.material.model == "microfacet" and cfg.material.f0 == (0.04, 0.04, 0.04)
+    assert cfg.material.albedo == (0.5, 0.4, 0.3) and cfg.material.sigma == 0.2
+    assert cfg.material.table() == {"model": "microfacet", "albedo": [0.5, 0.4, 0.3],
+                                    "sigma": 0.2, "f0": [0.04, 0.04, 0.04]}
+    assert cfg.lighting.kind == "environment" and cfg.lighting.sources.shape == (1, 3)
+    assert not cfg.lighting.is_known
+
+
+@pytest.mark.parametrize("old,new,key", [
+    ("fx = 40.0", "fx = inf", "camera.fx"),                        # issue #17 row 5
+    ("fx = 40.0", "fx = -1.0", "camera.fx"),
+    ("exposure = 1.0", "exposure = inf", "images[0].exposure"),
+    ("read = 0.001", "read = nan", "noise.read"),
+    ("relative = 0.01", "relative = inf", "noise.relative"),
+    ("saturation = 0.99", "saturation = nan", "saturation"),
+    ("width = 32", "width = 0", "camera.width"),
+    ("sigma = 0.2", "sigma = 0.0", "material.sigma"),
+    ("f0 = 0.04", "f0 = [0.04, nan, 0.04]", "material.f0"),
+    ("f0 = 0.04", "f0 = [0.04, 0.04]", "material.f0"),
+    ("albedo = [0.5, 0.4, 0.3]", "albedo = -0.1", "material.albedo"),
+    ("sources = [[0.0, 0.0, 2.0]]", "sources = [[0.0, 0.0, 0.0]]", "lighting.sources"),
+])
+def test_bad_numbers_name_key_and_file(tmp_path, old, new, key):
+    assert old in BASE
+    _one_line_error(tmp_path, BASE.replace(old, new, 1), key)
+
+
+def test_same_image_twice_is_refused(tmp_path):
+    """Issue #17 row 7: the same [[images]] entry twice would double its samples."""
+    msg = _one_line_error(tmp_path, BASE.replace('file = "b.exr"', 'file = "a.exr"'),
+                          "images[1]")
+    assert "images[0]" in msg
+
+
+def test_invalid_utf8_and_directory_capture_toml(tmp_path):
+    """Issue #17 row 14: one line naming capture.toml, not an internal error."""
+    (tmp_path / "capture.toml").write_bytes(BASE.encode() + b"\nname = \"\xff\xfe\"\n")
+    with pytest.raises(CaptureError, match="not UTF-8") as exc:
+        load_config(tmp_path)
+    assert "capture.toml" in str(exc.value) and "\n" not in str(exc.value)
+    d = tmp_path / "dir"
+    (d / "capture.toml").mkdir(parents=True)
+    with pytest.raises(CaptureError, match="not a regular file") as exc:
+        load_config(d)
+    assert "capture.toml" in str(exc.value)
+
+
+def test_lighting_coefficients_may_name_a_json_file(tmp_path):
+    """`lighting.coefficients = "sh.json"` (envmap-sh --json / results.json layout) is read by
+    capture.probes as the known lighting; a malformed file is one line naming it.
+    """
+    import json
+
+    from brdfcap.capture.probes import known_sh_lighting
+
+    rows = [[0.8, 0.7, 0.6]] + [[0.1, 0.0, -0.1]] * 3
+    (tmp_path / "sh.json").write_text(json.dumps({"lmax": 1, "sh": "rh2001-real",
+                                                  "coefficients": rows}))
+    text = BASE.replace('kind = "environment"', 'kind = "environment"\ncoefficients = "sh.json"')
+    cfg = load_config(_write(tmp_path, text))
+    assert cfg.lighting.is_known and cfg.lighting.coefficients_file == tmp_path / "sh.json"
+    assert known_sh_lighting(cfg.lighting, 8).tolist() == rows
+    (tmp_path / "sh.json").write_text(json.dumps({"lighting": {"coefficients": [[1.0]] * 3}}))
+    with pytest.raises(CaptureError, match="coefficients") as exc:
+        known_sh_lighting(cfg.lighting, 8)
+    assert "sh.json" in str(exc.value)
