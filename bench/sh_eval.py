@@ -6,7 +6,7 @@ rows replaced by the exact poles and points 1e-30 … 1e-3 rad from them), ``lma
 time of ``--repeats`` runs after one warm-up, ns per output value (time / (N (lmax+1)²)), the
 ratio to each peer (>1: the peer is slower), and the max abs error against the float64
 reference (this package's torch engine in float64, validated against scipy in
-``tests/test_sh.py``) on the first ``--nerr`` directions, using the float32-rounded inputs for
+``tests/fit/test_sh.py``) on the first ``--nerr`` directions, using the float32-rounded inputs for
 float32 rows (so the error is the arithmetic's, not the input rounding's).
 
 Backends:
@@ -107,8 +107,10 @@ def _backends(lmax):
 
 
 def _align(y: torch.Tensor, ref: torch.Tensor, lmax: int) -> torch.Tensor:
-    """Match e3nn's basis functions to ours within each band (permutation and sign) by the
-    largest |correlation| over the sample directions; e3nn orders and signs them its own way.
+    """Match e3nn's basis functions to ours within each band (permutation and sign).
+
+    By the largest |correlation| over the sample directions; e3nn orders and signs them its own
+    way.
     """
     out = torch.empty_like(y)
     for l in range(lmax + 1):
@@ -120,7 +122,7 @@ def _align(y: torch.Tensor, ref: torch.Tensor, lmax: int) -> torch.Tensor:
 
 
 def filter_tables() -> str:
-    """The l* / approximation tables of docs/sh.md §5 (``--filter-tables``)."""
+    """Print the l* / approximation tables of docs/sh.md §5 (``--filter-tables``)."""
     import math
 
     from brdfcap.fit.filters import (

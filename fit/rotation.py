@@ -1,17 +1,17 @@
-"""Rotation of real SH coefficient vectors (Ivanic & Ruedenberg recursion).
+r"""Rotation of real SH coefficient vectors (Ivanic & Ruedenberg recursion).
 
 Convention: real SH of :mod:`brdfcap.fit.sh` (R&H 2001 signs, index ``l(l+1)+m``). For a
 rotation matrix ``R`` (``(3, 3)``, proper, acting on column vectors) the band-``l`` block
 :math:`D^l(R)` is defined by
 
-.. math:: y_l(R\\,\\omega) = D^l(R)\\,y_l(\\omega),
+.. math:: y_l(R\,\omega) = D^l(R)\,y_l(\omega),
 
-so that the coefficients of the rotated function :math:`f_R(\\omega) = f(R^\\top\\omega)` (the
+so that the coefficients of the rotated function :math:`f_R(\omega) = f(R^\top\omega)` (the
 function "carried along" by ``R``: a light at direction ``d`` moves to ``R d``) are
-:math:`c' = D(R)\\,c` (because :math:`D(R^\\top) = D(R)^\\top`). Then
-:math:`D(R_1 R_2) = D(R_1) D(R_2)` and :math:`D(R^\\top) = D(R)^{-1} = D(R)^\\top`.
+:math:`c' = D(R)\,c` (because :math:`D(R^\top) = D(R)^\top`). Then
+:math:`D(R_1 R_2) = D(R_1) D(R_2)` and :math:`D(R^\top) = D(R)^{-1} = D(R)^\top`.
 
-:math:`D^1 = P R P^\\top` with ``P`` taking ``(x, y, z)`` to the order ``(y, z, x)`` of
+:math:`D^1 = P R P^\top` with ``P`` taking ``(x, y, z)`` to the order ``(y, z, x)`` of
 ``m = -1, 0, 1``; higher bands follow by the recursion of Ivanic & Ruedenberg (1996, J. Phys.
 Chem. 100, 6342, Tables 1-2, with the corrections of the 1998 erratum, J. Phys. Chem. A 102,
 9099): :math:`D^l_{mn} = u^l_{mn} U^l_{mn} + v^l_{mn} V^l_{mn} + w^l_{mn} W^l_{mn}`. Entries are

@@ -1,4 +1,4 @@
-"""Real and complex spherical harmonics, stable to high degree, with analytic gradients.
+r"""Real and complex spherical harmonics, stable to high degree, with analytic gradients.
 
 Convention (see ``docs/sh.md``; the summary in ``docs/conventions.md``)
 -----------------------------------------------------------------------
@@ -10,50 +10,50 @@ flat index ``l*(l+1) + m``. With ``θ`` measured from ``+z`` and ``φ`` from ``+
 
 .. math::
 
-    y_{l0} = \\bar P_l^0(\\cos\\theta),\\quad
-    y_{lm} = \\sqrt2\\,\\bar P_l^m(\\cos\\theta)\\cos m\\phi,\\quad
-    y_{l,-m} = \\sqrt2\\,\\bar P_l^m(\\cos\\theta)\\sin m\\phi \\quad (m > 0),
+    y_{l0} = \bar P_l^0(\cos\theta),\quad
+    y_{lm} = \sqrt2\,\bar P_l^m(\cos\theta)\cos m\phi,\quad
+    y_{l,-m} = \sqrt2\,\bar P_l^m(\cos\theta)\sin m\phi \quad (m > 0),
 
-where :math:`\\bar P_l^m = \\sqrt{\\tfrac{2l+1}{4\\pi}\\tfrac{(l-m)!}{(l+m)!}}\\,P_l^m`
-*without* the :math:`(-1)^m` phase (so :math:`\\bar P_m^m > 0`).
+where :math:`\bar P_l^m = \sqrt{\tfrac{2l+1}{4\pi}\tfrac{(l-m)!}{(l+m)!}}\,P_l^m`
+*without* the :math:`(-1)^m` phase (so :math:`\bar P_m^m > 0`).
 
 **Complex** SH carry the Condon-Shortley phase (the physics / scipy convention):
-:math:`Y_l^m = (-1)^m \\sqrt{\\tfrac{2l+1}{4\\pi}\\tfrac{(l-m)!}{(l+m)!}}\\,
-P_l^m(\\cos\\theta)\\, e^{im\\phi}` with :math:`P_l^m` free of the phase, equivalently
+:math:`Y_l^m = (-1)^m \sqrt{\tfrac{2l+1}{4\pi}\tfrac{(l-m)!}{(l+m)!}}\,
+P_l^m(\cos\theta)\, e^{im\phi}` with :math:`P_l^m` free of the phase, equivalently
 ``scipy.special.sph_harm_y(l, m, theta, phi)``. The two bases are related by
 
 .. math::
 
-    Y_l^{m} = \\frac{(-1)^m}{\\sqrt2}\\,(y_{lm} + i\\,y_{l,-m}),\\qquad
-    Y_l^{-m} = \\frac{1}{\\sqrt2}\\,(y_{lm} - i\\,y_{l,-m}),\\qquad Y_l^0 = y_{l0}.
+    Y_l^{m} = \frac{(-1)^m}{\sqrt2}\,(y_{lm} + i\,y_{l,-m}),\qquad
+    Y_l^{-m} = \frac{1}{\sqrt2}\,(y_{lm} - i\,y_{l,-m}),\qquad Y_l^0 = y_{l0}.
 
 Numerics
 --------
 Everything is evaluated on Cartesian components, never on ``θ``/``φ``: with
-:math:`\\rho = \\sqrt{x^2+y^2}` the products :math:`\\bar P_l^m \\cos m\\phi = Q_l^m(z)\\,
-\\mathrm{Re}(x+iy)^m` are computed by the square-root-normalised three-term recurrence in ``l``
+:math:`\rho = \sqrt{x^2+y^2}` the products :math:`\bar P_l^m \cos m\phi = Q_l^m(z)\,
+\mathrm{Re}(x+iy)^m` are computed by the square-root-normalised three-term recurrence in ``l``
 (no factorials),
 
 .. math::
 
-    S_l^m = a_{lm}\\,(z S_{l-1}^m - b_{lm} S_{l-2}^m),\\quad
-    a_{lm} = \\sqrt{\\tfrac{4l^2-1}{l^2-m^2}},\\
-    b_{lm} = \\sqrt{\\tfrac{(l-1)^2-m^2}{4(l-1)^2-1}},
+    S_l^m = a_{lm}\,(z S_{l-1}^m - b_{lm} S_{l-2}^m),\quad
+    a_{lm} = \sqrt{\tfrac{4l^2-1}{l^2-m^2}},\
+    b_{lm} = \sqrt{\tfrac{(l-1)^2-m^2}{4(l-1)^2-1}},
 
-seeded with :math:`S_m^m = \\bar q_m\\,\\mathrm{Re/Im}(x+iy)^m`,
-:math:`\\bar q_m = \\sqrt{\\tfrac{1}{4\\pi}\\prod_{k=1}^m\\tfrac{2k+1}{2k}}` and
-:math:`S_{m+1}^m = \\sqrt{2m+3}\\,z\\,S_m^m` (Holmes & Featherstone 2002, J. Geodesy 76,
+seeded with :math:`S_m^m = \bar q_m\,\mathrm{Re/Im}(x+iy)^m`,
+:math:`\bar q_m = \sqrt{\tfrac{1}{4\pi}\prod_{k=1}^m\tfrac{2k+1}{2k}}` and
+:math:`S_{m+1}^m = \sqrt{2m+3}\,z\,S_m^m` (Holmes & Featherstone 2002, J. Geodesy 76,
 eqs. 11-13, in the "forward column" form). Because the seed already carries the factor
-:math:`\\rho^m`, every intermediate is bounded by :math:`\\sqrt{(2l+1)/2\\pi}` — the *reduced*
+:math:`\rho^m`, every intermediate is bounded by :math:`\sqrt{(2l+1)/2\pi}` — the *reduced*
 Legendre values :math:`Q_l^m(z)` (≈ 1e205 at the poles for ``l = 1000``) are never formed, so
 nothing overflows. Near the poles the seed underflows gracefully; for ``lmax > 600`` in float64
 the seeds are scaled by :math:`2^{600}` (and the result by :math:`2^{-600}`, exact powers of two)
 so that no value above 1e-300 is lost before ``l ≈ 3000``.
 
 Gradients are analytic (a custom autograd function): with :math:`C_m + iS_m = (x+iy)^m`,
-:math:`\\partial_x C_m = mC_{m-1}`, :math:`\\partial_y C_m = -mS_{m-1}` and
-:math:`\\mathrm d Q_l^m/\\mathrm dz = \\sqrt{(l+m+1)(l-m)}\\,Q_l^{m+1}`, all products of the
-form :math:`Q_l^\\mu (x+iy)^{\\mu-1}` that the same recurrence computes. They are finite
+:math:`\partial_x C_m = mC_{m-1}`, :math:`\partial_y C_m = -mS_{m-1}` and
+:math:`\mathrm d Q_l^m/\mathrm dz = \sqrt{(l+m+1)(l-m)}\,Q_l^{m+1}`, all products of the
+form :math:`Q_l^\mu (x+iy)^{\mu-1}` that the same recurrence computes. They are finite
 everywhere, including the poles and the ``φ`` wrap-around. The SH are differentiated as the
 polynomials above (no re-normalisation of the input), so the gradient has a radial component
 for unit inputs; project it out if you optimise directions on the sphere.
@@ -110,19 +110,37 @@ _BLOCK_POINTS = 65536
 
 
 def num_coeffs(lmax: int) -> int:
-    """Number of real SH coefficients up to and including band ``lmax``: ``(lmax+1)**2``."""
+    """Return the number of real SH coefficients up to band ``lmax``: ``(lmax+1)**2``.
+
+    Examples
+    --------
+    >>> num_coeffs(2)
+    9
+    """
     return (lmax + 1) ** 2
 
 
 def sh_index(l: int, m: int) -> int:
-    """Flat index ``l*(l+1) + m`` of coefficient ``(l, m)``."""
+    """Return the flat index ``l*(l+1) + m`` of coefficient ``(l, m)``.
+
+    Examples
+    --------
+    >>> sh_index(1, -1), sh_index(2, 2)
+    (1, 8)
+    """
     if not (0 <= l and -l <= m <= l):
         raise ValueError(f"invalid SH degree/order (l={l}, m={m}); need l >= 0 and |m| <= l")
     return l * (l + 1) + m
 
 
 def band_of_index(lmax: int) -> torch.Tensor:
-    """Band ``l`` of every flat index up to ``lmax``, shape ``((lmax+1)**2,)``."""
+    """Return the band ``l`` of every flat index up to ``lmax``, shape ``((lmax+1)**2,)``.
+
+    Examples
+    --------
+    >>> band_of_index(1).tolist()
+    [0, 1, 1, 1]
+    """
     return torch.cat([torch.full((2 * l + 1,), l, dtype=torch.long) for l in range(lmax + 1)])
 
 
@@ -387,7 +405,7 @@ def set_sh_backend(name: str) -> None:
 
 
 def get_sh_backend() -> str:
-    """The current :func:`set_sh_backend` choice."""
+    """Return the current :func:`set_sh_backend` choice."""
     return _backend
 
 
@@ -633,7 +651,7 @@ def complex_sh(directions: torch.Tensor, lmax: int) -> torch.Tensor:
 # Angles
 # --------------------------------------------------------------------------------------------
 def directions_from_angles(theta: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
-    """Unit vectors ``(sinθ cosφ, sinθ sinφ, cosθ)``; θ from +z, φ from +x toward +y.
+    """Return unit vectors ``(sinθ cosφ, sinθ sinφ, cosθ)``; θ from +z, φ from +x toward +y.
 
     Returns ``(..., 3)`` with the broadcast shape of ``theta`` and ``phi``.
     """

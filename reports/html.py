@@ -48,8 +48,10 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 
 def _image_tables(images: list[dict]) -> tuple[list[str], dict[str, dict]]:
-    """Split the per-image records into the scalar linearisation columns and one table per
-    nested record (``registration``, ``geometry``, ...), each flattened to scalar columns.
+    """Split the per-image records into scalar linearisation columns and nested-record tables.
+
+    One table per nested record (``registration``, ``geometry``, ...), each flattened to scalar
+    columns.
     """
     keys: list[str] = []
     nested: dict[str, dict] = {}
