@@ -16,10 +16,12 @@ from brdfcap.fit.brdf_models import BRDF_MODELS
 
 from brdfcap.core.errors import CaptureError
 
+from .raw import RAW_OPTION_KEYS
 from .types import (
     RGB,
     CameraModel,
     CaptureConfig,
+    ColourChecker,
     Correspondences,
     DirectionalLight,
     ImageSpec,
@@ -29,7 +31,10 @@ from .types import (
     PointLight,
 )
 
-__all__ = ["load_config", "CAPTURE_FORMAT", "KNOWN_KEYS"]
+__all__ = ["load_config", "CAPTURE_FORMAT", "KNOWN_KEYS", "COLOUR_KEYS"]
+
+#: Keys of the ``[colour]`` table (ColorChecker correction, ``capture.raw_load``).
+COLOUR_KEYS = frozenset({"checker_image", "checker_boxes", "checker_method", "checker_chart"})
 
 CAPTURE_FORMAT = "brdfcap/1"
 
@@ -157,6 +162,40 @@ def _parse_lighting(tab: dict, root: Path, path: Path) -> KnownLighting:
         sources = arr
     return KnownLighting(kind=kind, coefficients=coeffs, coefficients_file=cfile, probe=probe,
                          probe_lmax=None if lmax is None else int(lmax), sources=sources)
+
+
+def _parse_raw_table(tab: Any, where: str, path: Path) -> dict | None:
+    """Check a ``[raw]`` table (capture-wide or per image); unknown keys raise, valid listed."""
+    if tab is None:
+        return None
+    if not isinstance(tab, dict):
+        raise CaptureError(f"'{where}raw' must be a table", path)
+    for k in tab:
+        if k not in RAW_OPTION_KEYS and not (where and k == "bracket"):
+            raise CaptureError(f"unknown key '[raw] {k}'; valid: "
+                               f"{', '.join(sorted(RAW_OPTION_KEYS))}", path)
+    return dict(tab)
+
+
+def _parse_colour(doc: dict, root: Path, path: Path) -> ColourChecker | None:
+    """``[colour]`` (alias ``[color]``) into :class:`ColourChecker`, or ``None`` when absent."""
+    tab = doc.get("colour", doc.get("color"))
+    if not tab:
+        return None
+    if not isinstance(tab, dict):
+        raise CaptureError("'colour' must be a table", path)
+    bad = sorted(set(tab) - COLOUR_KEYS)
+    if bad:
+        raise CaptureError(f"unknown key(s) in [colour]: {', '.join(bad)}; valid: "
+                           f"{', '.join(sorted(COLOUR_KEYS))}", path)
+    if "checker_image" not in tab or "checker_boxes" not in tab:
+        raise CaptureError("[colour] needs checker_image and checker_boxes (24 boxes "
+                           "[x0, y0, x1, y1] in pixels, chart order)", path)
+    image = _get(tab, "checker_image", "colour.", path, (str,))
+    method = _get(tab, "checker_method", "colour.", path, (str,), False, "Cheung 2004")
+    chart = _get(tab, "checker_chart", "colour.", path, (str,), False, None)
+    return ColourChecker(image=root / image, boxes=tab["checker_boxes"], method=method,
+                         chart=chart)
 
 
 def _unknown(table: dict, section: str, where: str, warnings: list[str]) -> None:
@@ -393,13 +432,25 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
         mask_file = None
         if isinstance(entry.get("mask"), str):
             mask_file = root / entry["mask"]
+        raw_img = _parse_raw_table(entry.get("raw"), where, toml_path)
+        bracket: tuple[Path, ...] = ()
+        if raw_img is not None:
+            br = raw_img.pop("bracket", None) or []
+            br = [br] if isinstance(br, str) else br
+            if not isinstance(br, list) or not all(isinstance(b, str) for b in br):
+                raise CaptureError(f"key '{where}raw.bracket' must be a file name or a list of "
+                                   "them", toml_path)
+            bracket = tuple(root / b for b in br)
         specs.append(ImageSpec(file=file, world_to_camera=pose, exposure=exposure, light=light,
-                               correspondences=corr, mask_file=mask_file))
+                               correspondences=corr, mask_file=mask_file, raw=raw_img,
+                               bracket=bracket, exposure_given="exposure" in entry))
 
     return CaptureConfig(root=root, toml_path=toml_path, name=name, mesh=mesh, camera=camera,
                          lighting_kind=kind, images=specs, noise=noise,
                          saturation=None if sat is None else float(sat), albedo=albedo,
                          warnings=warnings, raw=doc, normal_map=normal_map,
                          material=material, lighting=lighting,
+                         raw_table=_parse_raw_table(doc.get("raw"), "", toml_path),
+                         colour=_parse_colour(doc, root, toml_path),
                          geometry_mask=geom_mask, frame_check=frame_check,
                          dark_floor=None if dark is None else float(dark), **mesh_opts)

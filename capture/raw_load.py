@@ -20,6 +20,7 @@ import numpy as np
 
 from brdfcap.core.errors import CaptureError
 
+from .config import COLOUR_KEYS
 from .hdr import Exposure, merge_brackets
 from .raw import RawOptions, decode_raw
 from .types import CaptureConfig, ImageSpec, View
@@ -37,19 +38,12 @@ REPORT_KEYS = ("demosaic", "demosaic_edge_fraction", "black_level", "white_level
 
 def raw_options_for(config: CaptureConfig, index: int) -> tuple[RawOptions, list[Path]]:
     """Options for image ``index`` and its bracket files (resolved against the capture root)."""
-    doc = config.raw or {}
-    entries = doc.get("images", [])
-    entry = entries[index] if index < len(entries) else {}
-    per_image = dict(entry.get("raw", {}) or {})
-    bracket = per_image.pop("bracket", []) or []
-    if isinstance(bracket, str):
-        bracket = [bracket]
     spec = config.images[index]
     opts = RawOptions.from_tables(
-        doc.get("raw"), per_image, root=config.root, path=config.toml_path,
-        exposure=spec.exposure if "exposure" in entry else None,
+        config.raw_table, spec.raw, root=config.root, path=config.toml_path,
+        exposure=spec.exposure if spec.exposure_given else None,
         noise=config.noise if config.noise.is_known else None)
-    return opts, [config.root / b for b in bracket]
+    return opts, list(spec.bracket)
 
 
 def _failed_view(index: int, spec: ImageSpec, config: CaptureConfig, exc: CaptureError) -> View:
@@ -111,8 +105,6 @@ def check_any_decoded(views: list[View], config: CaptureConfig) -> None:
                            f"{raw_views[0].info['error']}", config.toml_path)
 
 
-#: Keys of the ``[colour]`` table of ``capture.toml`` (ColorChecker correction).
-COLOUR_KEYS = frozenset({"checker_image", "checker_boxes", "checker_method", "checker_chart"})
 
 
 def apply_colour_checker(views: list[View], config: CaptureConfig) -> dict | None:
@@ -130,19 +122,11 @@ def apply_colour_checker(views: list[View], config: CaptureConfig) -> dict | Non
     from .images import read_image
     from .raw import is_raw_file
 
-    doc = config.raw or {}
-    tab = doc.get("colour", doc.get("color"))
-    if not tab:
+    chk = config.colour
+    if chk is None:
         return None
-    bad = sorted(set(tab) - COLOUR_KEYS)
-    if bad:
-        raise CaptureError(f"unknown key(s) in [colour]: {', '.join(bad)}; valid: "
-                           f"{', '.join(sorted(COLOUR_KEYS))}", config.toml_path)
-    if "checker_image" not in tab or "checker_boxes" not in tab:
-        raise CaptureError("[colour] needs checker_image and checker_boxes (24 boxes "
-                           "[x0, y0, x1, y1] in pixels, chart order)", config.toml_path)
-    path = config.root / tab["checker_image"]
-    opts = RawOptions.from_tables(doc.get("raw"), root=config.root, path=config.toml_path)
+    path = chk.image
+    opts = RawOptions.from_tables(config.raw_table, root=config.root, path=config.toml_path)
     if is_raw_file(path):
         li = decode_raw(path, opts)
         image, mask = li.radiance, li.mask
@@ -150,9 +134,8 @@ def apply_colour_checker(views: list[View], config: CaptureConfig) -> dict | Non
         image = read_image(path)
         mask = np.all(np.isfinite(image), axis=2)
     res = colour_checker_correction(
-        image, tab["checker_boxes"], method=tab.get("checker_method", "Cheung 2004"),
-        chart=tab.get("checker_chart", DEFAULT_COLOUR_CHECKER), space=opts.working_space,
-        mask=mask)
+        image, chk.boxes, method=chk.method, chart=chk.chart or DEFAULT_COLOUR_CHECKER,
+        space=opts.working_space, mask=mask)
     d = res.to_dict()
     linear = np.shape(res.matrix) == (3, 3)
     for v in views:

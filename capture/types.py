@@ -21,6 +21,7 @@ __all__ = [
     "ImageSpec",
     "Material",
     "KnownLighting",
+    "ColourChecker",
     "CaptureConfig",
     "View",
     "Capture",
@@ -125,6 +126,9 @@ class ImageSpec:
     light: DirectionalLight | PointLight | None = None
     correspondences: Correspondences | None = None  # for PnP (reconstruct.pose)
     mask_file: Path | None = None  # foreground mask image (silhouette refinement)
+    raw: dict | None = None  # per-image [raw] overrides (capture.raw_load), without 'bracket'
+    bracket: tuple[Path, ...] = ()  # raw.bracket: further exposures of this view, resolved
+    exposure_given: bool = False  # 'exposure' was written (overrides a raw file's EXIF)
 
 
 RGB = tuple[float, float, float]
@@ -179,6 +183,21 @@ class KnownLighting:
                 or self.probe is not None)
 
 
+@dataclass(frozen=True)
+class ColourChecker:
+    """``[colour]``: a ColorChecker photographed under the capture's conditions.
+
+    ``image``: the chart's raw or linear image; ``boxes``: 24 ``[x0, y0, x1, y1]`` pixel boxes in
+    chart order; ``method``: a colour-science colour-correction method; ``chart``: the reference
+    chart name (``None``: the default of :mod:`brdfcap.capture.colour`).
+    """
+
+    image: Path
+    boxes: list
+    method: str = "Cheung 2004"
+    chart: str | None = None
+
+
 @dataclass
 class CaptureConfig:
     """A validated ``capture.toml``."""
@@ -205,6 +224,8 @@ class CaptureConfig:
     dark_floor: float | None = None  # raw value below which (all channels) a pixel is dark
     material: Material | None = None  # [material], typed
     lighting: KnownLighting = field(default_factory=KnownLighting)  # [lighting], typed
+    raw_table: dict | None = None  # [raw]: capture-wide raw options (capture.raw.RawOptions)
+    colour: ColourChecker | None = None  # [colour] (alias [color])
 
     @property
     def geometry_source(self) -> str:

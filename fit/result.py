@@ -146,6 +146,10 @@ class FitResult:
         report's albedo map and BRDF slices.
     known_albedo : torch.Tensor or None
         ``(C,)`` albedo the lighting was rendered with (report's lighting figures).
+    bands : dict
+        Per-band statistics per recovered quantity (``{"lighting": [...], "brdf": [...]}``;
+        each a list of per-``l`` records from :func:`brdfcap.fit.conditioning.band_statistics`
+        or the measurement's own), also in ``record``.
     """
 
     problem: str
@@ -159,6 +163,12 @@ class FitResult:
     albedo: Any = None
     measurement: Any = None
     known_albedo: torch.Tensor | None = None
+    bands: dict[str, list[dict]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.bands and self.lighting is not None and getattr(self.lighting, "bands",
+                                                                    None):
+            self.bands = {"lighting": self.lighting.bands}
 
     @property
     def results(self) -> dict:

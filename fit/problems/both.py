@@ -33,7 +33,8 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
            Estimate("brdf_filter", res.filter, res.filter_stderr, "band",
                     note="specular filter f_l (f_0 = 1), the same in every channel; " + note)]
     return FitResult("both", est, res.prediction, res.to_results(), summary=res.summary(),
-                     ambiguities=list(res.ambiguities), lighting=res.lighting)
+                     ambiguities=list(res.ambiguities), lighting=res.lighting,
+                     bands={"lighting": res.lighting.bands, "brdf": res.filter_bands})
 
 
 register_problem(Problem(

@@ -84,7 +84,7 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                     determined=fit.determined, note="A_l = Lambda_l rho_l (R&H 2001 eq. 12)")]
     if fit.kd is not None:
         est.append(Estimate("kd", fit.kd, fit.kd_stderr, "channel"))
-    return FitResult("brdf", est, pred, rec, summary=summ)
+    return FitResult("brdf", est, pred, rec, summary=summ, bands={"brdf": fit.bands})
 
 
 def problem_brdf(samples, known: Known, opts: FitOptions) -> FitResult:

@@ -55,7 +55,8 @@ def problem_brdf_isotropic(samples, known: Known, opts: FitOptions) -> FitResult
                                 "rows", determined=sol.determined[rows],
                                 labels=[(idx[j][0], idx[j][2]) for j in rows],
                                 note="R&H 2001 eq. 16; CSV l = l, m = |q|"))
-    return FitResult("brdf-isotropic", est, pred, rec, summary=summ)
+    return FitResult("brdf-isotropic", est, pred, rec, summary=summ,
+                     bands={"brdf": fit["bands"]})
 
 
 register_problem(Problem(

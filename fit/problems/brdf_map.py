@@ -55,7 +55,8 @@ def problem_brdf_map(samples, known: Known, opts: FitOptions) -> FitResult:
                     note="SH-domain specular BRDF rho_l (R&H 2001 eq. 12)"),
            Estimate("lambertian_albedo", glob.albedo, glob.stderr, "channel",
                     note="global Lambertian fit (brdf.lambertian_global)")]
-    return FitResult("brdf-map", est, pred, {"brdf": rec}, albedo=glob, measurement=meas)
+    return FitResult("brdf-map", est, pred, {"brdf": rec}, albedo=glob, measurement=meas,
+                     bands={"brdf": sh.bands})
 
 
 register_problem(Problem(

@@ -78,7 +78,8 @@ def problem_decomposition(samples, known: Known, opts: FitOptions) -> FitResult:
                     determined=sol.determined[k:],
                     note="power of bright source i (lighting.sources[i])")]
     est += material_estimates(None, params)
-    return FitResult("decomposition", est, parts.total, rec, summary=summ)
+    return FitResult("decomposition", est, parts.total, rec, summary=summ,
+                     bands={"lighting": rows})
 
 
 register_problem(Problem(

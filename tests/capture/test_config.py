@@ -122,3 +122,21 @@ def test_lighting_coefficients_may_name_a_json_file(tmp_path):
     with pytest.raises(CaptureError, match="coefficients") as exc:
         known_sh_lighting(cfg.lighting, 8)
     assert "sh.json" in str(exc.value)
+
+
+def test_raw_and_colour_tables_are_typed(tmp_path):
+    """[raw], per-image raw (with bracket) and [colour] are parsed at load time, so no stage
+    reads the TOML again; an unknown [raw] key is one line naming it.
+    """
+    text = BASE.replace('file = "a.exr"\n', 'file = "a.exr"\nraw = {bracket = "a2.dng", '
+                        'demosaic = "bilinear"}\n') + (
+        '[raw]\nwhite_balance = "daylight"\n[colour]\nchecker_image = "chart.dng"\n'
+        'checker_boxes = [[0, 0, 4, 4]]\n')
+    cfg = load_config(_write(tmp_path, text))
+    assert cfg.raw_table == {"white_balance": "daylight"}
+    assert cfg.images[0].raw == {"demosaic": "bilinear"}
+    assert cfg.images[0].bracket == (tmp_path / "a2.dng",) and cfg.images[0].exposure_given
+    assert cfg.images[1].raw is None and not cfg.images[1].exposure_given
+    assert cfg.colour.image == tmp_path / "chart.dng" and cfg.colour.method == "Cheung 2004"
+    _one_line_error(tmp_path, text.replace('white_balance = "daylight"', 'wb = 1'), "[raw] wb")
+    _one_line_error(tmp_path, text.replace("checker_boxes", "boxes"), "[colour]")
