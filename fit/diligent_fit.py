@@ -48,9 +48,11 @@ P_l(a·b)`` turns this into a Legendre series in ``x = r·ωi``:
 .. math:: B / E = \sum_l \sqrt{\frac{2l+1}{4\pi}} \, \hat\rho_l \, P_l(r\cdot\omega_i)
 
 so ``ρ̂_l`` of the specular part (samples with the fitted diffuse term subtracted) is measured
-by weighted linear least squares on Legendre polynomials, band by band conditioning reported as
-for the lighting (:mod:`brdfcap.fit.lighting`). The analytic ``ρ̂_l`` of the fitted Phong lobe
-comes from :func:`brdfcap.fit.filters.phong_filter` (exact recurrence) for comparison.
+by weighted linear least squares on the normalised Legendre functions of :mod:`brdfcap.fit.sh`,
+solved by the shared :func:`brdfcap.fit.solve.solve_wls` (λ = 0, columns equilibrated through
+its per-band penalty, sandwich standard errors computed here), band by band conditioning
+reported as for the lighting (:mod:`brdfcap.fit.lighting`). The analytic ``ρ̂_l`` of the fitted
+Phong lobe comes from :func:`brdfcap.fit.filters.phong_filter` (exact recurrence) for comparison.
 """
 
 from __future__ import annotations
@@ -65,10 +67,11 @@ from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, render_directional
 from .filters import lambda_l, phong_filter
+from .sh import legendre_normalized
+from .solve import solve_wls
 
 __all__ = ["phong_radiance", "PhongFit", "fit_lambert_phong", "BrdfSH", "measure_brdf_sh",
-           "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX",
-           "legendre_table"]
+           "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX"]
 
 #: Highest Legendre band of the measured SH-domain ρ̂. A Phong lobe of exponent ``s`` has
 #: ``Λ_l ρ̂_l ≈ exp(-l²/(2s))`` (R&H 2001, §3.2): l = 24 keeps exponents up to s ≈ 60 to 1e-2.
@@ -338,21 +341,6 @@ def phong_rho_hat(ks, s: float, lmax: int) -> np.ndarray:
     return rho[:, None] * np.atleast_1d(_np(ks))[None, :]
 
 
-def legendre_table(x: np.ndarray, lmax: int) -> np.ndarray:
-    """Return ``P_0..P_lmax`` at ``x`` by Bonnet's recursion, ``(lmax+1, len(x))`` float64.
-
-    Unnormalised ``P_l``; :func:`brdfcap.fit.sh.legendre_normalized` returns
-    ``sqrt((2l+1)/(4π)) P_l`` by a different recurrence (equal to ~1e-14, not bit for bit).
-    """
-    p = np.zeros((lmax + 1,) + x.shape)
-    p[0] = 1.0
-    if lmax >= 1:
-        p[1] = x
-    for l in range(1, lmax):
-        p[l + 1] = ((2 * l + 1) * x * p[l] - l * p[l - 1]) / (l + 1)
-    return p
-
-
 @dataclass
 class BrdfSH:
     """Measured SH-domain ``ρ̂_l`` of the specular part, per channel, with conditioning."""
@@ -387,34 +375,36 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
     x = np.clip(np.asarray(x, np.float64), -1.0, 1.0)
     y = np.asarray(y, np.float64)
     w = np.asarray(w, np.float64)
-    ls = np.arange(lmax + 1)
-    a = (legendre_table(x, lmax) * np.sqrt((2 * ls + 1) / (4 * math.pi))[:, None]).T  # (N, L+1)
+    a = legendre_normalized(torch.from_numpy(x), lmax, m=0)  # (N, L+1): sqrt((2l+1)/4π) P_l
+    band = torch.arange(lmax + 1)
     nch = y.shape[1]
     rho = np.zeros((lmax + 1, nch))
     se = np.full((lmax + 1, nch), math.inf)
     res = np.zeros((lmax + 1, nch))
     for c in range(nch):
-        g = (a * w[:, c:c + 1]).T @ a
-        d = np.sqrt(np.diag(g))
-        dinv = 1.0 / np.where(d > 0, d, np.inf)
-        ge = g * dinv[:, None] * dinv[None, :]
-        ev, vec = np.linalg.eigh(ge)
-        keep = ev > 1e-12 * ev.max()
-        vk = vec[:, keep]
-        inv = (vk / ev[keep]) @ vk.T
-        rhs = a.T @ (w[:, c] * y[:, c])
-        xsol = dinv * (inv @ (dinv * rhs))
-        r = y[:, c] - a @ xsol
-        dof = max(len(x) - int(keep.sum()), 1)
-        # sandwich covariance (White 1980) in the equilibrated basis: the specular residual's
-        # scatter grows with the signal, a pooled σ² would misstate the per-band errors
-        ae = a * dinv
-        meat = (ae * (w[:, c] * r)[:, None] ** 2).T @ ae
-        cov = inv @ meat @ inv * (len(x) / dof)
-        res[:, c] = (vk * vk).sum(-1)
-        rho[:, c] = xsol
-        se[:, c] = np.where(res[:, c] > 0.5, np.sqrt(np.clip(np.diag(cov), 0, None)) * dinv,
-                            math.inf)
+        wc = torch.from_numpy(np.ascontiguousarray(w[:, c:c + 1]))
+        yc = torch.from_numpy(np.ascontiguousarray(y[:, c:c + 1]))
+        # column equilibration: a per-band penalty equal to diag(AᵀWA) makes solve_wls work on
+        # the unit-diagonal normal matrix (its eigenvalue cut then ignores the column scales)
+        d2 = (a * a * wc).sum(0)
+        sol = solve_wls(a, yc, wc, band, rule="none", noise_known=True,
+                        band_penalty=torch.where(d2 > 0, d2, torch.ones_like(d2)),
+                        keep_covariance=True, noise_source="sandwich (White 1980)")
+        xsol = sol.coefficients[:, 0]
+        r = yc[:, 0] - a @ xsol
+        # sandwich covariance (White 1980, Econometrica 48(4), eq. 5): the specular residual's
+        # scatter grows with the signal, a pooled σ² would misstate the per-band errors.
+        # (AᵀWA)⁺ is solve_wls's λ = 0 covariance divided by its σ² = max(χ², 1).
+        ginv = sol.covariance[0] / sol.chi2_reduced[0].clamp_min(1.0)
+        aw = a * (wc[:, 0] * r)[:, None]
+        meat = aw.T @ aw
+        rank = float(sol.n_samples - sol.dof[0])  # eigenvalues kept (tr H at λ = 0)
+        dof = max(len(x) - rank, 1.0)
+        cov = ginv @ meat @ ginv * (len(x) / dof)
+        res[:, c] = sol.resolution[:, 0].numpy()
+        rho[:, c] = xsol.numpy()
+        se[:, c] = np.where(res[:, c] > 0.5, np.sqrt(np.clip(torch.diagonal(cov).numpy(), 0,
+                                                             None)), math.inf)
     bands, first = [], None
     floor = 1e-6 * np.abs(rho[0]).max(initial=0.0)
     for l in range(lmax + 1):

@@ -12,8 +12,9 @@ import math
 from pathlib import Path
 
 import numpy as np
+import torch
 from brdfcap.capture.images import write_image
-from brdfcap.fit.diligent_fit import legendre_table
+from brdfcap.fit.sh import legendre_normalized
 
 from .figures import display_encode, fig_to_data_uri, plt
 
@@ -74,8 +75,7 @@ def brdf_slice_figure(meas):
     edges = np.linspace(0, 90, 46)
     grid = np.linspace(0, 90, 400)
     cg = np.cos(np.radians(grid))
-    ls = np.arange(meas.sh.lmax + 1)
-    pl = legendre_table(cg, meas.sh.lmax) * np.sqrt((2 * ls + 1) / (4 * math.pi))[:, None]
+    pl = legendre_normalized(torch.from_numpy(cg), meas.sh.lmax, m=0).numpy().T  # (L+1, G)
     ax = axes[0]
     for c in range(meas.slice_y.shape[1]):
         col = _COLOURS[c % 3]
