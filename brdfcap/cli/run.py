@@ -14,6 +14,7 @@ import click
 from brdfcap.baselines import bench_for_report
 from brdfcap.batch import find_captures as _find
 from brdfcap.batch import run_batch
+from brdfcap.capture.config import load_config
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.fit.brdf_models import BRDF_MODELS
 from brdfcap.fit.problems import PROBLEMS
@@ -83,6 +84,11 @@ def run_cmd(obj: CliState, path: Path, out: Path, lmax: int, device: str, proble
         fail(BrdfcapError("no such capture directory", path), debug)
     captures = find_captures(path)
     if not captures:
+        if (path / "capture.toml").exists():  # e.g. a directory named capture.toml
+            try:
+                load_config(path)
+            except BrdfcapError as exc:
+                fail(exc, debug)
         hint = ""
         if (path / "light_directions.txt").is_file():
             hint = (f"; this looks like a DiLiGenT-layout dataset: convert it first with "

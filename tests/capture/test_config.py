@@ -140,3 +140,17 @@ def test_raw_and_colour_tables_are_typed(tmp_path):
     assert cfg.colour.image == tmp_path / "chart.dng" and cfg.colour.method == "Cheung 2004"
     _one_line_error(tmp_path, text.replace('white_balance = "daylight"', 'wb = 1'), "[raw] wb")
     _one_line_error(tmp_path, text.replace("checker_boxes", "boxes"), "[colour]")
+
+
+def test_run_names_a_capture_toml_directory(tmp_path):
+    """`brdfcap run` on a folder whose capture.toml is a directory names that file (issue #17
+    row 14), not "no capture.toml found".
+    """
+    from click.testing import CliRunner
+
+    from brdfcap.cli import main
+
+    (tmp_path / "cap" / "capture.toml").mkdir(parents=True)
+    res = CliRunner().invoke(main, ["run", str(tmp_path / "cap"), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert "capture.toml" in res.output and "not a regular file" in res.output
