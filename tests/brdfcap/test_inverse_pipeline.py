@@ -181,3 +181,23 @@ def test_purely_specular_material_with_scalar_f0(tmp_path):
         runs[name] = _run(cap, tmp_path / name, "--problem", "lighting", "--lmax", "2")
     assert runs["scalar"]["brdf"]["parameters"]["f0"] == [1.0, 1.0, 1.0]
     assert runs["scalar"]["lighting"]["coefficients"] == runs["rgb"]["lighting"]["coefficients"]
+
+
+def test_known_lighting_from_a_results_layout_json(captures, tmp_path):
+    """A capture.toml may name its known lighting as a JSON file in results.json's lighting
+    layout (what `brdfcap envmap-sh --json` writes): the same fit as the inline coefficients.
+    """
+    import shutil
+
+    cap = tmp_path / "cap"
+    shutil.copytree(captures["env"], cap)
+    toml = (cap / "capture.toml").read_text()
+    m = re.search(r"^coefficients = (\[\[.*?\]\])\s*$", toml, re.S | re.M)
+    assert m, "the simulated capture writes its known lighting inline"
+    rows = json.loads(m.group(1))
+    (cap / "sh.json").write_text(json.dumps({"lmax": 2, "sh": "rh2001-real", "frame": "world",
+                                             "coefficients": rows}))
+    inline = _run(cap, tmp_path / "inline", "--problem", "brdf", "--brdf-lmax", "4")
+    (cap / "capture.toml").write_text(toml.replace(m.group(0), 'coefficients = "sh.json"'))
+    named = _run(cap, tmp_path / "named", "--problem", "brdf", "--brdf-lmax", "4")
+    assert named["brdf"]["sh"]["filter"] == inline["brdf"]["sh"]["filter"]
