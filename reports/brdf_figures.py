@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .figures import display_encode, fig_to_data_uri, plt
+from .figures import display_encode, fig_to_data_uri, plt, robust_figure
 
 __all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_brdf_measurement",
            "brdf_summary_lines"]
@@ -21,6 +21,7 @@ __all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_b
 _COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 
+@robust_figure
 def albedo_map_figure(albedo_map: np.ndarray, stderr_map: np.ndarray | None = None):
     """Recovered diffuse albedo ``k_d`` per pixel (linear values shown sRGB-encoded, white = 1).
 
@@ -57,6 +58,7 @@ def _binned(x, y, edges):
     return np.array(cen), np.array(mean), np.array(sd)
 
 
+@robust_figure
 def brdf_slice_figure(meas):
     """Specular slice ``B_spec/E`` vs the angle between ``r`` and ``ωi``, and diffuse slice.
 
@@ -106,9 +108,11 @@ def brdf_slice_figure(meas):
     return fig
 
 
+@robust_figure
 def brdf_sh_figure(sh):
-    """Measured ``|ρ̂_l|`` ± std. error per band vs the fitted Phong lobe's analytic ``ρ̂_l``;
-    ill-conditioned bands shaded.
+    """Plot measured ``|ρ̂_l|`` ± std. error per band vs the Phong lobe's analytic ``ρ̂_l``.
+
+    Ill-conditioned bands are shaded.
     """
     fig, ax = plt.subplots(figsize=(6.0, 3.4))
     ls = np.arange(sh.lmax + 1)
@@ -157,9 +161,10 @@ def brdf_summary_lines(meas, geometry=None, results: dict | None = None) -> list
 
 def attach_brdf_measurement(results: dict, figures: dict, meas, geometry,
                             out_dir: str | Path) -> None:
-    """Write ``albedo_map.exr`` (+ std. error) into ``out_dir`` and add the BRDF measurement to
-    ``results`` (``results["brdf"]``, the previous global-Lambertian record kept under
-    ``results["brdf"]["lambertian_global"]``) and its figures to ``figures``.
+    """Write ``albedo_map.exr`` (+ std. error) and add the BRDF measurement to the results.
+
+    The measurement goes into ``results["brdf"]`` (the previous global-Lambertian record kept
+    under ``results["brdf"]["lambertian_global"]``) and its figures into ``figures``.
     """
     from brdfcap.capture.images import write_image
 
