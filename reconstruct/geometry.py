@@ -15,7 +15,7 @@ from brdfcap.capture.types import CameraModel, Capture
 
 from brdfcap.core.errors import GeometryError
 
-from .camera import camera_rays
+from .camera import camera_rays, check_distortion
 from .mesh import Mesh
 from .shadows import ShadowPolicy, shadow_mask, shadow_policy
 
@@ -295,6 +295,7 @@ def compute_geometry(capture: Capture, mesh: Mesh, shadows: str = "auto") -> Geo
     GeometryError
         When the mesh does not project into any image (wrong pose, units or mesh).
     """
+    check_distortion(capture.config.camera, capture.config.toml_path)  # names the file
     scene = _scene(mesh)
     views = []
     lights = [v.spec.light for v in capture.views]
@@ -380,6 +381,7 @@ def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
     from .registration import register_capture
 
     cfg = capture.config
+    check_distortion(cfg.camera, cfg.toml_path)  # before registration projects anything
     opts = registration_options(cfg)
     mesh = load_mesh(cfg.mesh, units=cfg.mesh_units, normals=cfg.mesh_normals,
                      smooth_iterations=cfg.smooth_normals)
