@@ -170,15 +170,33 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
             warn(f"{name}: {n_wild} pixel values are implausible (up to {float(mag.max()):.3g}, "
                  f"more than {IMPLAUSIBLE_RATIO:g} x the 99th percentile {scale:.3g}): a corrupt "
                  "file (bit flips decode silently in compressed EXR)? check or re-export it")
+    # radiance and its variance in float64 first: a huge value or a tiny exposure overflows
+    # float32 (and a zero-weight sample would reach the fit with no file named)
+    rad64 = np.where(finite[..., None], pixels, 0.0).astype(np.float64) / float(spec.exposure)
+    var64 = None
+    with np.errstate(over="ignore", invalid="ignore"):
+        if config.noise.is_known:
+            var64 = config.noise.variance(rad64)
+        f32 = np.finfo(np.float32).max
+        big = np.any(~(np.abs(rad64) <= f32), axis=2)
+        if var64 is not None:
+            big |= np.any(~(var64 <= f32), axis=2)
+    big &= finite
+    n_big = int(big.sum())
+    if n_big:
+        mask &= ~big
+        warn(f"{name}: {n_big} pixels out of float32 range after dividing by the exposure "
+             f"{spec.exposure:g} (or in their noise variance): masked; check the image's units "
+             "and [[images]].exposure")
     if not (mask & np.any(pixels > 0, axis=2)).any():
         warn(f"{name}: no usable pixel ({n_neg} negative beyond noise, {n_sat} saturated, "
-             f"{int((~finite).sum())} non-finite, the rest zero); check the file and its "
-             "[[images]].exposure")
-    radiance = np.where(finite[..., None], pixels, 0.0).astype(np.float32) / np.float32(
-        spec.exposure)
+             f"{int((~finite).sum())} non-finite, {n_big} out of range, the rest zero); check "
+             "the file and its [[images]].exposure")
+    keep = (finite & ~big)[..., None]
+    radiance = np.where(keep, rad64, 0.0).astype(np.float32)
     variance = None
-    if config.noise.is_known:
-        variance = config.noise.variance(radiance).astype(np.float32)
+    if var64 is not None:
+        variance = np.where(keep, var64, 0.0).astype(np.float32)
     info = {
         "file": spec.file.name,
         "source": "linear image",
@@ -188,6 +206,8 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
         "saturated_pixels": n_sat,
         "saturated_fraction": n_sat / float(pixels.shape[0] * pixels.shape[1]),
     }
+    if n_big:
+        info["out_of_range_pixels"] = n_big
     if flat_level is not None:
         info["flat_top"] = {"value": flat_level, "pixels": int(plateau.sum())}
     if n_wild:
@@ -231,10 +251,11 @@ def load_capture(capture_dir: str | Path) -> Capture:
     finish_views(views, config)  # raw files: fail if none decoded; [colour] checker correction
     if views and not any((v.mask & np.any(v.radiance > 0, axis=2)).any() for v in views):
         counts = {k: sum(int(v.info.get(k, 0)) for v in views)
-                  for k in ("negative_pixels", "saturated_pixels", "non_finite_pixels")}
+                  for k in ("negative_pixels", "saturated_pixels", "non_finite_pixels",
+                            "out_of_range_pixels")}
         raise CaptureError(
             f"no image has a usable pixel ({counts['negative_pixels']} negative beyond noise, "
             f"{counts['saturated_pixels']} saturated, {counts['non_finite_pixels']} non-finite, "
-            "the rest zero): check the images, [[images]].exposure and 'saturation'",
-            config.toml_path)
+            f"{counts['out_of_range_pixels']} out of float32 range, the rest zero): check the "
+            "images, [[images]].exposure and 'saturation'", config.toml_path)
     return Capture(config=config, views=views)

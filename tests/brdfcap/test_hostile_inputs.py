@@ -138,6 +138,16 @@ def test_row5_all_negative_images(base, tmp_path, capfd):
                           "pixel", "negative")
 
 
+def test_row5_overflowing_pixels_name_the_file(base, tmp_path, capfd):
+    # radiance x 1e30: the noise variance overflows float32, every weight would be 0 and the
+    # fit said "no sample with positive weight" without naming anything
+    cap = _copy(base, tmp_path / "cap")
+    for f in _images(cap):
+        write_image(f, read_image(f) * np.float32(1e30))
+    out = tmp_path / "out"
+    _assert_fails_cleanly(*_run(cap, out, capfd), out, "capture.toml", "out of float32 range")
+
+
 def test_row5_negative_pixels_masked(base, tmp_path, capfd):
     cap = _copy(base, tmp_path / "cap")
     f = _images(cap)[0]
