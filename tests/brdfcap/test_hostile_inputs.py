@@ -328,3 +328,24 @@ def test_fuzz_numbers_and_pixels(base, tmp_path_factory, capfd, field, value, fi
     if code == 1:
         assert len(lines) == 1, lines
         assert "internal error" not in lines[0] and "Traceback" not in lines[0], lines[0]
+
+
+# ---- a batch: one hostile capture among healthy ones -------------------------------------------
+
+@pytest.mark.slow  # three captures through a batch: ~45 s on 2 cores
+def test_batch_with_one_hostile_capture(base, tmp_path, capfd):
+    root = tmp_path / "root"
+    for name in ("a_healthy", "b_hostile", "c_healthy"):
+        _copy(base, root / name)
+    bad = _images(root / "b_hostile")[0]
+    bad.write_bytes(bad.read_bytes()[:300])  # truncated header
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["run", str(root), "--out", str(out), "--no-progress"])
+    assert res.exit_code == 1
+    assert (out / "a_healthy" / "results.json").is_file()
+    assert (out / "c_healthy" / "results.json").is_file()
+    assert not (out / "b_hostile" / "results.json").exists()
+    index = (out / "index.html").read_text()
+    assert "b_hostile" in index and "000.exr" in index
+    err = [ln for ln in res.stderr.splitlines() if "b_hostile" in ln]
+    assert err and all("internal error" not in ln for ln in err)
