@@ -6,7 +6,12 @@ space in the file metadata (``oiio:ColorSpace``) and write atomically (temporary
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
+import re
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +19,63 @@ import OpenImageIO as oiio
 
 from brdfcap.core.errors import CaptureError
 
-__all__ = ["read_pixels", "read_image", "to_rgb", "write_image", "LINEAR_EXTENSIONS"]
+__all__ = ["read_pixels", "read_image", "to_rgb", "write_image", "LINEAR_EXTENSIONS",
+           "captured_stderr", "one_line"]
 
 LINEAR_EXTENSIONS = {".exr", ".tif", ".tiff", ".hdr", ".pfm"}
+
+
+def _flush_c_stdio() -> None:
+    """``fflush(NULL)``: push what C code buffered on stdout/stderr before a descriptor moves."""
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):  # pragma: no cover - no libc symbols (not Linux/macOS)
+        pass
+
+
+@contextlib.contextmanager
+def captured_stderr(fds: tuple[int, ...] = (2,), limit: int = 65536):
+    """Capture what C libraries write to file descriptors ``fds`` (libpng, OpenEXR, RPly...).
+
+    Yields a list that receives the captured text's non-empty lines (ANSI colour codes
+    removed) when the block ends, so a caller can put them into its one-line error instead of
+    letting them reach the terminal. Python's ``sys.stdout``/``sys.stderr`` and C's stdio
+    buffers are flushed before and after; only the first ``limit`` bytes per descriptor are
+    kept. ``fds=(1, 2)`` also silences libraries that warn on stdout (open3d).
+    """
+    lines: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    _flush_c_stdio()
+    saved = [(fd, os.dup(fd), tempfile.TemporaryFile()) for fd in fds]
+    for fd, _, tmp in saved:
+        os.dup2(tmp.fileno(), fd)
+    try:
+        yield lines
+    finally:
+        _flush_c_stdio()
+        for fd, keep, tmp in saved:
+            os.dup2(keep, fd)
+            os.close(keep)
+            tmp.seek(0)
+            text = _ANSI.sub("", tmp.read(limit).decode("utf-8", "replace"))
+            tmp.close()
+            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def one_line(*messages: str, limit: int = 300) -> str:
+    """Join library error messages into one line: non-empty lines, duplicates dropped, ``; ``."""
+    seen: list[str] = []
+    for msg in messages:
+        for ln in str(msg or "").splitlines():
+            ln = ln.strip()
+            if ln and ln not in seen:
+                seen.append(ln)
+    text = "; ".join(seen)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def read_pixels(path: str | Path, what: str = "image",
@@ -25,7 +84,11 @@ def read_pixels(path: str | Path, what: str = "image",
     """Read every channel of an image file as ``(H, W, C)`` float32, plus its stored pixel type.
 
     The one OpenImageIO reader of the project: integer files come back scaled to [0, 1] by
-    OpenImageIO (``code / max``), float files as stored.
+    OpenImageIO (``code / max``), float files as stored. OpenImageIO reports some decoding
+    errors only after the pixels were read (a truncated or corrupt compressed block), so
+    ``has_error``/``geterror()`` of the reader and the global ``oiio.geterror()`` are checked
+    after the open *and* after the read; what the codec libraries print on stderr (libpng,
+    OpenEXR) is captured and becomes part of the one-line message.
 
     Parameters
     ----------
@@ -44,23 +107,35 @@ def read_pixels(path: str | Path, what: str = "image",
     Raises
     ------
     CaptureError
-        Missing, unreadable or corrupt file (message names the file).
+        Missing, unreadable, truncated or corrupt file: one line naming the file.
     """
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{what} file not found; {fix}", path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise CaptureError(f"cannot open {what}: {oiio.geterror() or 'unsupported or corrupt'}",
-                           path)
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        err = inp.geterror()
-    finally:
-        inp.close()
-    if data is None:
-        raise CaptureError(f"cannot read {what} pixels: {err or 'corrupt file'}", path)
+    oiio.geterror()  # clear a stale global error of an earlier call
+    data, spec, err = None, None, ""
+    with captured_stderr() as chatter:
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            err = one_line(oiio.geterror())
+        else:
+            try:
+                spec = inp.spec()
+                if spec.width <= 0 or spec.height <= 0 or spec.nchannels <= 0:
+                    err = f"empty image ({spec.width}x{spec.height}x{spec.nchannels})"
+                else:
+                    data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+                    if inp.has_error:
+                        err = one_line(inp.geterror())
+                err = one_line(err, oiio.geterror())
+            finally:
+                inp.close()
+    if spec is None:
+        raise CaptureError(f"cannot open {what} (truncated, corrupt or unsupported file): "
+                           f"{one_line(err, *chatter) or 'unknown format'}", path)
+    if data is None or err:
+        raise CaptureError(f"cannot read {what} pixels (truncated or corrupt file): "
+                           f"{one_line(err, *chatter) or 'decoder returned no pixels'}", path)
     arr = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
     return arr, str(spec.format)
 

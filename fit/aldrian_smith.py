@@ -37,6 +37,7 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
+from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights
 
@@ -194,6 +195,8 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
     y = torch.where(ok[:, None], y, torch.zeros_like(y))
     band = band_of_index(lmax)
     ahat = diffuse_filter(lmax)[band]  # Â_l/π per coefficient
+    check_dense_memory((n.shape[0], (max(specular_lmax, lmax) + 1) ** 2 + (lmax + 1) ** 2),
+                       "dense SH designs (N x K) of the Aldrian-Smith fit", n.device)
     U = real_sh(n, lmax)  # (N, K)   U_k l with l = Â L / π folded: l_lm = ahat * L_lm
     k = U.shape[1]
     ls = max(specular_lmax, lmax)

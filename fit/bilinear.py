@@ -43,6 +43,7 @@ from brdfcap.core.errors import FitError
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import band_statistics, noise_level
 from .lighting import SHFit
+from .memory import check_dense_memory
 from .records import conditioning_json, lighting_json
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
@@ -160,6 +161,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     band = band_of_index(lmax)
     if int((w > 0).sum(0).min()) < k + brdf_lmax + 2:
         raise FitError("too few samples for the bilinear factorisation at this lmax")
+    check_dense_memory((n.shape[0], k), "dense SH designs (N x K) of the bilinear fit",
+                       n.device, count=2)
     yn = real_sh(n, lmax) * diffuse_filter(lmax)[band]  # (N, K), diffuse filter folded in
     yr = real_sh(r, lmax)  # (N, K)
     # weighted Grams per channel (precomputed once)

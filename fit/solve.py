@@ -49,6 +49,8 @@ import torch
 
 from brdfcap.core.errors import FitError
 
+from .memory import check_wls_memory
+
 __all__ = ["LinearSolution", "solve_wls", "noise_weights", "drop_nonfinite_directions",
            "default_band_penalty",
            "REGULARIZATION_RULES", "EIG_RTOL",
@@ -223,6 +225,7 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         When no sample has positive weight. Rank deficiency is *not* an error: the
         undetermined coefficients are flagged, set by the regulariser (0 with ``"none"``).
     """
+    check_wls_memory(design, b, band, chunk=chunk, keep_covariance=keep_covariance)
     if rule not in REGULARIZATION_RULES:
         raise ValueError(f"unknown regularisation rule {rule!r}; valid: {REGULARIZATION_RULES}")
     b = b.to(torch.float64)

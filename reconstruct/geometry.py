@@ -15,11 +15,11 @@ from brdfcap.capture.types import CameraModel, Capture
 
 from brdfcap.core.errors import GeometryError
 
-from .camera import camera_rays
+from .camera import camera_rays, check_distortion
 from .mesh import Mesh
 from .shadows import ShadowPolicy, shadow_mask, shadow_policy
 
-__all__ = ["ViewGeometry", "Geometry", "Samples", "cast_view", "compute_geometry",
+__all__ = ["ViewGeometry", "Geometry", "Samples", "CenteredScene", "cast_view", "compute_geometry",
            "build_samples", "light_at", "GRAZING_COS", "EDGE_PX", "DISCONTINUITY_SIN",
            "compute_capture_geometry"]
 
@@ -114,13 +114,50 @@ class Samples:
         return int(self.normal.shape[0])
 
 
-def _scene(mesh: Mesh):
-    import open3d as o3d
+class CenteredScene:
+    """An open3d ``RaycastingScene`` of a mesh re-centred in float64 before the float32 cast.
 
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
-    return scene
+    open3d intersects in float32, whose spacing at 10^6 m is 6 cm: a mesh and cameras far from
+    the world origin (geo-referenced scans) lose every digit that matters before a ray is cast.
+    The scene therefore holds ``vertices - origin`` (``origin`` = the mesh's bounding-box
+    centre, subtracted in float64) and moves every ray origin by the same ``-origin`` in float64
+    before casting. Ray parameters ``t`` and primitive ids/uvs are translation invariant, so the
+    results need no correction; positions are rebuilt in float64 from the hit triangle and its
+    barycentric coordinates (:func:`cast_view`).
+
+    ``cast_rays`` and ``test_occlusions`` take ``(..., 6)`` rays ``[origin, direction]`` as a
+    float64 numpy array (preferred: full precision) or an open3d tensor, and pass keyword
+    arguments through.
+    """
+
+    def __init__(self, mesh: Mesh):
+        import open3d as o3d
+
+        self.origin = np.asarray(mesh.center, np.float64)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(
+            o3d.core.Tensor((mesh.vertices - self.origin).astype(np.float32)),
+            o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+
+    def _rays(self, rays):
+        import open3d as o3d
+
+        r = rays.numpy() if hasattr(rays, "numpy") else rays
+        r = np.array(r, dtype=np.float64)  # a copy: the caller's rays stay in world coordinates
+        r[..., :3] -= self.origin
+        return o3d.core.Tensor(r.astype(np.float32))
+
+    def cast_rays(self, rays, **kwargs):
+        """``RaycastingScene.cast_rays`` on world-frame rays (see the class doc)."""
+        return self.scene.cast_rays(self._rays(rays), **kwargs)
+
+    def test_occlusions(self, rays, **kwargs):
+        """``RaycastingScene.test_occlusions`` on world-frame rays (see the class doc)."""
+        return self.scene.test_occlusions(self._rays(rays), **kwargs)
+
+
+def _scene(mesh: Mesh) -> CenteredScene:
+    return CenteredScene(mesh)
 
 
 def _edge_pixels(hit: np.ndarray, pos: np.ndarray, gn: np.ndarray, edge_px: int) -> np.ndarray:
@@ -158,8 +195,9 @@ def cast_view(scene, mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarra
 
     o, d = camera_rays(camera, world_to_camera)
     h, w = camera.height, camera.width
-    rays = np.concatenate([o, d], -1).reshape(-1, 6).astype(np.float32)
-    res = scene.cast_rays(o3d.core.Tensor(rays))
+    rays = np.concatenate([o, d], -1).reshape(-1, 6)  # float64: re-centred before float32
+    res = scene.cast_rays(rays) if isinstance(scene, CenteredScene) else scene.cast_rays(
+        o3d.core.Tensor(rays.astype(np.float32)))
     t = res["t_hit"].numpy().astype(np.float64)
     hit = np.isfinite(t)
     prim = res["primitive_ids"].numpy().astype(np.int64)
@@ -217,8 +255,9 @@ def light_at(light, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def add_lighting(g: ViewGeometry, light, scene, mesh: Mesh, cast_shadows: bool) -> None:
-    """Fill ``wi``, ``light_irradiance``, ``light_distance`` and (if asked) ``shadow`` of a
-    view in place, for its hit pixels.
+    """Fill a view's ``wi``, ``light_irradiance``, ``light_distance`` and ``shadow`` in place.
+
+    Only hit pixels are filled; ``shadow`` only when ``cast_shadows``.
     """
     h, w = g.hit.shape
     wi = np.zeros((h, w, 3))
@@ -256,6 +295,7 @@ def compute_geometry(capture: Capture, mesh: Mesh, shadows: str = "auto") -> Geo
     GeometryError
         When the mesh does not project into any image (wrong pose, units or mesh).
     """
+    check_distortion(capture.config.camera, capture.config.toml_path)  # names the file
     scene = _scene(mesh)
     views = []
     lights = [v.spec.light for v in capture.views]
@@ -280,8 +320,9 @@ def compute_geometry(capture: Capture, mesh: Mesh, shadows: str = "auto") -> Geo
 
 def build_samples(capture: Capture, geometry: Geometry,
                   device: str | torch.device = "cpu", exclude_shadows: bool = True) -> Samples:
-    """Gather valid pixels of every view (geometry valid, image mask, not in shadow) into
-    :class:`Samples`.
+    """Gather valid pixels of every view into :class:`Samples`.
+
+    A pixel is valid when its geometry is valid, its image mask is set and it is not in shadow.
 
     ``exclude_shadows=False`` keeps shadowed pixels (for diagnostics: a fit on them is biased
     low, see ``tests/test_shadows.py``).
@@ -327,9 +368,10 @@ def build_samples(capture: Capture, geometry: Geometry,
 
 
 def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
-    """Geometry from the capture's geometry source: ``geometry.mesh`` (ray casting,
-    :func:`compute_geometry`, ``kwargs`` passed on) or ``geometry.normal_map``
-    (:func:`brdfcap.reconstruct.normal_map.normal_map_geometry`).
+    """Compute geometry from the capture's geometry source.
+
+    ``geometry.mesh``: ray casting (:func:`compute_geometry`, ``kwargs`` passed on);
+    ``geometry.normal_map``: :func:`brdfcap.reconstruct.normal_map.normal_map_geometry`.
     """
     if getattr(capture.config, "normal_map", None) is not None:
         from .normal_map import normal_map_geometry
@@ -339,6 +381,7 @@ def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
     from .registration import register_capture
 
     cfg = capture.config
+    check_distortion(cfg.camera, cfg.toml_path)  # before registration projects anything
     opts = registration_options(cfg)
     mesh = load_mesh(cfg.mesh, units=cfg.mesh_units, normals=cfg.mesh_normals,
                      smooth_iterations=cfg.smooth_normals)
@@ -351,8 +394,10 @@ def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
 
 
 def registration_options(config) -> dict:
-    """``[registration]`` keys: ``refine`` (bool, default true: silhouette refinement where
-    ``images[].mask`` is given) and ``shadows`` (``auto`` | ``always`` | ``never``).
+    """Read the ``[registration]`` keys ``refine`` and ``shadows``.
+
+    ``refine`` (bool, default true: silhouette refinement where ``images[].mask`` is given) and
+    ``shadows`` (``auto`` | ``always`` | ``never``).
     """
     from brdfcap.core.errors import CaptureError
 

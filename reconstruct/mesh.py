@@ -1,5 +1,7 @@
-"""Scanned-mesh loading (open3d) into a plain :class:`Mesh` record: units, cleaning, manifold
-checks, consistent outward orientation, per-vertex or per-face normals, and a convexity test.
+"""Scanned-mesh loading (open3d) into a plain :class:`Mesh` record.
+
+Loading covers units, cleaning, manifold checks, consistent outward orientation, per-vertex or
+per-face normals, and a convexity test.
 
 A scan is usable when, after cleaning, it still has triangles, every coordinate is finite and
 at most :data:`MAX_NON_MANIFOLD_FRACTION` of its triangles had to be dropped to make every edge
@@ -13,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from brdfcap.capture.images import captured_stderr, one_line
 
 from brdfcap.core.errors import GeometryError
 
@@ -77,7 +80,7 @@ class Mesh:
         return 0.5 * (self.vertices.max(0) + self.vertices.min(0))
 
     def transformed(self, transform: np.ndarray) -> "Mesh":
-        """This mesh moved by a rigid 4x4 (or 3x4) transform (normals rotated with it)."""
+        """Return this mesh moved by a rigid 4x4 (or 3x4) transform (normals rotated with it)."""
         t = np.asarray(transform, dtype=np.float64)
         r, tr = t[:3, :3], t[:3, 3]
         return Mesh(vertices=self.vertices @ r.T + tr, faces=self.faces,
@@ -97,7 +100,7 @@ class ConvexityTest:
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit geometric normals ``(b - a) x (c - a)`` of triangles ``(F, 3)`` (zero-area -> 0)."""
+    """Compute unit geometric normals ``(b - a) x (c - a)`` of triangles (zero-area -> 0)."""
     a, b, c = (vertices[faces[:, i]] for i in range(3))
     n = np.cross(b - a, c - a)
     ln = np.linalg.norm(n, axis=1, keepdims=True)
@@ -134,7 +137,7 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, source: str = "",
 
 
 def _directed_edges_consistent(faces: np.ndarray) -> bool:
-    """True when no directed edge occurs twice (orientation consistent across shared edges)."""
+    """Check that no directed edge occurs twice (orientation consistent across shared edges)."""
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     key = e[:, 0].astype(np.int64) * (int(faces.max()) + 1) + e[:, 1]
     return len(np.unique(key)) == len(key)
@@ -260,12 +263,18 @@ def load_mesh(path: str | Path, units: str | float = "m", normals: str = "vertex
     if not path.is_file():
         raise GeometryError("mesh file not found; check geometry.mesh in capture.toml", path)
     scale = units_scale(units, path)
-    m = o3d.io.read_triangle_mesh(str(path))
+    with captured_stderr(fds=(1, 2)) as chatter:  # RPly / open3d print to stderr and stdout
+        m = o3d.io.read_triangle_mesh(str(path))
     if len(m.vertices) == 0 or len(m.triangles) == 0:
-        raise GeometryError("mesh is empty or unreadable (need a triangle mesh: PLY/OBJ/STL)",
-                            path)
-    return _finish(m, str(path), normals=normals, smooth_iterations=smooth_iterations,
+        why = one_line(*(ln for ln in chatter if not ln.startswith("[Open3D WARNING] geometry")),
+                       limit=200)
+        raise GeometryError("mesh is empty or unreadable (need a triangle mesh: PLY/OBJ/STL)"
+                            + (f": {why}" if why else ""), path)
+    mesh = _finish(m, str(path), normals=normals, smooth_iterations=smooth_iterations,
                    scale=scale)
+    if chatter:  # read, but the reader said something: keep it for the report, not the terminal
+        mesh.info["reader_messages"] = one_line(*chatter, limit=300)
+    return mesh
 
 
 def convexity_test(mesh: Mesh, rel_tol: float = CONVEXITY_REL_TOL) -> ConvexityTest:
@@ -348,7 +357,7 @@ def convexity_test(mesh: Mesh, rel_tol: float = CONVEXITY_REL_TOL) -> ConvexityT
 
 
 def uv_sphere(radius: float = 1.0, n_theta: int = 96, n_phi: int = 192) -> Mesh:
-    """A latitude-longitude triangulated sphere centred at the origin (for synthetic scenes)."""
+    """Build a latitude-longitude triangulated sphere centred at the origin (synthetic scenes)."""
     th = np.linspace(0.0, np.pi, n_theta + 1)[1:-1]
     ph = np.linspace(0.0, 2 * np.pi, n_phi, endpoint=False)
     T, P = np.meshgrid(th, ph, indexing="ij")

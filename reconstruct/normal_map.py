@@ -161,7 +161,7 @@ def normal_map_geometry(capture: Capture, nmap: NormalMap | None = None,
                 f"view {v.index} ({v.spec.file.name}) has a point light, but a normal map gives "
                 "no surface positions to compute its direction and falloff from: use "
                 "directional lights or a mesh", cfg.toml_path)
-    _, d = camera_rays(cam, pose0)
+    _, d = camera_rays(cam, pose0, source=cfg.toml_path)  # names camera.distortion's file
     wo = -d
     cos_o = np.einsum("hwk,hwk->hw", nmap.normal, wo)
     valid = nmap.valid & (cos_o > grazing_cos)

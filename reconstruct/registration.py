@@ -1,5 +1,7 @@
-"""Scan-to-reference alignment: the mesh registered to a point cloud of the sample in its capture
-pose (``geometry.scan``), by FPFH + RANSAC global registration then point-to-plane ICP (open3d).
+"""Scan-to-reference alignment of the mesh to a point cloud of the sample (``geometry.scan``).
+
+The mesh is registered to the sample in its capture pose by FPFH + RANSAC global registration
+then point-to-plane ICP (open3d).
 
 References
 ----------
@@ -15,8 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from brdfcap.capture.images import read_pixels
 
-from brdfcap.core.errors import GeometryError
+from brdfcap.core.errors import CaptureError, GeometryError
 
 from .mesh import Mesh
 
@@ -35,8 +38,9 @@ MIN_FITNESS = 0.3
 
 @dataclass
 class RegistrationResult:
-    """Rigid ``transformation`` (4x4) taking mesh coordinates into the scan's (capture) frame,
-    with open3d's fitness (inlier fraction) and inlier RMSE (world units) of both stages.
+    """Rigid ``transformation`` (4x4) taking mesh coordinates into the scan's (capture) frame.
+
+    Also holds open3d's fitness (inlier fraction) and inlier RMSE (world units) of both stages.
     """
 
     transformation: np.ndarray
@@ -160,25 +164,25 @@ def register_mesh_to_scan(mesh: Mesh, scan: np.ndarray | str | Path,
 # --- capture-level registration ---------------------------------------------------------------
 
 def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
-    """Foreground mask/matte image as ``(H, W)`` float in ``[0, 1]`` (first channel; 8/16-bit
-    integers normalised). Values strictly between 0 and 1 are kept as a soft matte.
+    """Read a foreground mask/matte image as ``(H, W)`` float in ``[0, 1]``.
+
+    First channel; 8/16-bit integers normalised. Values strictly between 0 and 1 are kept as a
+    soft matte.
 
     Raises
     ------
     GeometryError
         Missing or unreadable file, or a size different from the camera's.
     """
-    import OpenImageIO as oiio
-
     path = Path(path)
     if not path.is_file():
         raise GeometryError("foreground mask not found; check images[].mask in capture.toml",
                             path)
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise GeometryError(f"cannot read foreground mask: {buf.geterror()}", path)
-    px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float64)
-    px = px[..., 0] if px.ndim == 3 else px
+    try:  # the project's one reader: OpenImageIO errors checked after decoding, one line
+        px, _ = read_pixels(path, what="foreground mask", fix="check images[].mask")
+    except CaptureError as exc:
+        raise GeometryError(exc.message, path) from None
+    px = px[..., 0].astype(np.float64)
     if px.shape != tuple(shape):
         raise GeometryError(f"foreground mask is {px.shape[1]}x{px.shape[0]} but the camera is "
                             f"{shape[1]}x{shape[0]}", path)
@@ -186,8 +190,10 @@ def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
 
 
 def register_capture(capture, mesh: Mesh, refine: bool = True) -> Mesh:
-    """Registration stage: align the mesh to ``geometry.scan`` (if given), then per view a PnP
-    pose from ``images[].correspondences`` and a silhouette refinement against
+    """Run the registration stage of a capture.
+
+    Align the mesh to ``geometry.scan`` (if given), then per view a PnP pose from
+    ``images[].correspondences`` and a silhouette refinement against
     ``images[].mask`` (if given). Poses are replaced in place (``view.spec``), the statistics
     go to ``view.info["registration"]`` (and so to ``results.json`` ``images[i]``); a view whose
     inputs are wrong keeps its declared pose and gets a warning there. Returns the mesh in the

@@ -66,12 +66,13 @@ def shadow_policy(mesh: Mesh, mode: str = "auto") -> ShadowPolicy:
 def shadow_mask(scene, positions: np.ndarray, geometric_normals: np.ndarray, wi: np.ndarray,
                 extent: float, light_distance: np.ndarray | None = None,
                 offset_rel: float = SHADOW_OFFSET_REL) -> np.ndarray:
-    """True where the segment from a surface point toward its light is blocked.
+    """Flag points whose segment toward their light is blocked (True = shadowed).
 
     Parameters
     ----------
-    scene : open3d.t.geometry.RaycastingScene
-        The mesh's scene.
+    scene : CenteredScene or open3d.t.geometry.RaycastingScene
+        The mesh's scene (:class:`~brdfcap.reconstruct.geometry.CenteredScene` keeps float64
+        precision far from the origin).
     positions, geometric_normals, wi : np.ndarray
         ``(N, 3)`` world-frame surface points, their triangles' unit geometric normals and unit
         directions toward the light (away from the surface).
@@ -97,16 +98,18 @@ def shadow_mask(scene, positions: np.ndarray, geometric_normals: np.ndarray, wi:
     attached = cos_g <= 0
     side = np.where(cos_g >= 0, 1.0, -1.0)[:, None]
     origins = positions + eps * side * geometric_normals
-    rays = np.concatenate([origins, wi], 1).astype(np.float32)
+    rays = np.concatenate([origins, wi], 1)  # float64: a CenteredScene re-centres them first
+    wrap = (lambda r: r) if hasattr(scene, "origin") else (
+        lambda r: o3d.core.Tensor(r.astype(np.float32)))
     tfar = np.inf if light_distance is None else None
     if tfar is not None:
-        occ = scene.test_occlusions(o3d.core.Tensor(rays), tnear=eps)
+        occ = scene.test_occlusions(wrap(rays), tnear=eps)
         blocked = occ.numpy().astype(bool)
     else:
         # per-ray far limits: scale each direction by its distance so tfar = 1 - eps / d
         d = np.asarray(light_distance, np.float64)
-        rays[:, 3:] = (wi * d[:, None]).astype(np.float32)
-        occ = scene.test_occlusions(o3d.core.Tensor(rays), tnear=float(eps / d.max()),
+        rays[:, 3:] = wi * d[:, None]
+        occ = scene.test_occlusions(wrap(rays), tnear=float(eps / d.max()),
                                     tfar=float(1.0 - eps / max(d.max(), 1e-300)))
         blocked = occ.numpy().astype(bool)
     return blocked | attached

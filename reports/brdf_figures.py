@@ -16,7 +16,7 @@ import torch
 from brdfcap.capture.images import write_image
 from brdfcap.fit.sh import legendre_normalized
 
-from .figures import display_encode, fig_to_data_uri, plt
+from .figures import display_encode, fig_to_data_uri, plt, robust_figure
 
 __all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_brdf_measurement",
            "attach_normal_map_info", "brdf_summary_lines"]
@@ -24,6 +24,7 @@ __all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_b
 _COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 
+@robust_figure
 def albedo_map_figure(albedo_map: np.ndarray, stderr_map: np.ndarray | None = None):
     """Recovered diffuse albedo ``k_d`` per pixel (linear values shown sRGB-encoded, white = 1).
 
@@ -60,6 +61,7 @@ def _binned(x, y, edges):
     return np.array(cen), np.array(mean), np.array(sd)
 
 
+@robust_figure
 def brdf_slice_figure(meas):
     """Specular slice ``B_spec/E`` vs the angle between ``r`` and ``ωi``, and diffuse slice.
 
@@ -106,6 +108,7 @@ def brdf_slice_figure(meas):
     return fig
 
 
+@robust_figure
 def brdf_sh_figure(sh):
     """Plot measured ``|ρ̂_l|`` ± std. error per band against the Phong fit's analytic ``ρ̂_l``.
 

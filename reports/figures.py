@@ -8,7 +8,9 @@ point (99th percentile) and encoded with the sRGB transfer function (colour-scie
 from __future__ import annotations
 
 import base64
+import functools
 import io
+import logging
 import math
 
 import matplotlib
@@ -17,18 +19,85 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["fig_to_data_uri", "display_encode", "thumbnails_figure", "residual_figure",
+__all__ = ["fig_to_data_uri", "display_encode", "plain_text", "robust_figure", "failed_figure",
+           "FIGURE_FAILURES", "thumbnails_figure", "residual_figure",
            "spectrum_figure", "sh_radiance_latlong", "latlong_lighting_figure",
            "relit_spheres_figure", "brdf_spec_from_results", "brdf_plots_figure",
            "lighting_figures", "brdf_figures"]
 
 
-def fig_to_data_uri(fig) -> str:
-    """Render a figure to an embedded ``data:image/png;base64,...`` URI and close it."""
+_log = logging.getLogger("brdfcap.reports")
+
+#: One line per figure that could not be drawn in this process (``"name: reason"``), for callers
+#: that want to list the failures; each is also logged once (logger ``brdfcap.reports``) and
+#: shown in the report in place of the figure.
+FIGURE_FAILURES: list[str] = []
+
+
+def plain_text(text: object) -> str:
+    """Make text from user data (file names, capture names) safe for a matplotlib label.
+
+    Matplotlib parses ``$...$`` as mathtext; an unbalanced or malformed expression in a file
+    name (``view $frac{1$ a.exr``) raises at draw time. Every ``$`` is escaped, so the text
+    is shown as written.
+    """
+    return str(text).replace("$", r"\$")
+
+
+def _record_failure(name: str, exc: BaseException) -> str:
+    reason = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
+    line = f"figure '{name}' could not be drawn ({reason}); the results are unaffected"
+    FIGURE_FAILURES.append(line)
+    _log.warning(line)
+    return line
+
+
+def failed_figure(name: str, reason: str):
+    """Draw a placeholder figure that says which figure failed and why (mathtext off)."""
+    fig = plt.figure(figsize=(6.0, 1.2))
+    fig.text(0.02, 0.5, f"Figure '{name}' could not be drawn:\n{reason}", fontsize=8,
+             va="center", ha="left", wrap=True, parse_math=False, color="tab:red")
+    return fig
+
+
+def robust_figure(func):
+    """Decorate a figure builder: an exception becomes a :func:`failed_figure` placeholder.
+
+    A figure is a view of the results, never a reason to lose them: the failure is logged and
+    recorded in :data:`FIGURE_FAILURES`, and the placeholder carries it into the report.
+    """
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - any drawing failure; the fit stays valid
+            plt.close("all")
+            return failed_figure(func.__name__, _record_failure(func.__name__, exc))
+    return wrapper
+
+
+def _png(fig) -> bytes:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+    try:
+        fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def fig_to_data_uri(fig) -> str:
+    """Render a figure to an embedded ``data:image/png;base64,...`` URI and close it.
+
+    Matplotlib parses text only when it draws, so a bad label fails here, not in the builder:
+    such a failure is recorded (:data:`FIGURE_FAILURES`) and the URI of a placeholder that
+    names the failure is returned instead.
+    """
+    try:
+        data = _png(fig)
+    except Exception as exc:  # noqa: BLE001 - see robust_figure
+        label = fig.get_label() or "figure"
+        data = _png(failed_figure(label, _record_failure(label, exc)))
+    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
 
 
 def display_encode(img: np.ndarray, white: float | None = None) -> np.ndarray:
@@ -43,6 +112,7 @@ def display_encode(img: np.ndarray, white: float | None = None) -> np.ndarray:
     return np.clip(colour.models.eotf_inverse_sRGB(x), 0.0, 1.0)
 
 
+@robust_figure
 def thumbnails_figure(images: list[np.ndarray], masks: list[np.ndarray], titles: list[str],
                       silhouettes: list[np.ndarray | None] | None = None):
     """Input photographs with the fit mask (red tint: pixels not used) and registration overlay.
@@ -64,7 +134,7 @@ def thumbnails_figure(images: list[np.ndarray], masks: list[np.ndarray], titles:
         overlay = disp.copy()
         overlay[~m] = 0.6 * overlay[~m] + 0.4 * np.array([0.8, 0.1, 0.1])
         ax.imshow(overlay)
-        ax.set_title(t, fontsize=8)
+        ax.set_title(plain_text(t), fontsize=8)
     drawn = False
     for ax, sil in zip(axes.ravel(), silhouettes or []):
         if sil is not None and np.any(sil) and not np.all(sil):
@@ -75,6 +145,7 @@ def thumbnails_figure(images: list[np.ndarray], masks: list[np.ndarray], titles:
     return fig
 
 
+@robust_figure
 def residual_figure(observed: list[np.ndarray], rendered: list[np.ndarray],
                     masks: list[np.ndarray], titles: list[str]):
     """Observed / re-rendered / residual (observed - rendered, luminance-like mean over RGB)."""
@@ -91,7 +162,7 @@ def residual_figure(observed: list[np.ndarray], rendered: list[np.ndarray],
         axes[i, 0].imshow(display_encode(o, white))
         axes[i, 1].imshow(display_encode(np.where(m[..., None], r, 0.0), white))
         im = axes[i, 2].imshow(res, cmap="RdBu_r", vmin=-lim, vmax=lim)
-        axes[i, 0].set_ylabel(t, fontsize=8)
+        axes[i, 0].set_ylabel(plain_text(t), fontsize=8)
         for j, name in enumerate(("observed", "re-rendered", "residual")):
             axes[i, j].set_xticks([])
             axes[i, j].set_yticks([])
@@ -101,6 +172,7 @@ def residual_figure(observed: list[np.ndarray], rendered: list[np.ndarray],
     return fig
 
 
+@robust_figure
 def spectrum_figure(bands: list[dict], energy: np.ndarray, energy_err: np.ndarray,
                     predicted_filter: np.ndarray | None, ill_from: int | None,
                     predicted_lstar: float | None = None, channel_names=("R", "G", "B")):
@@ -163,6 +235,7 @@ def _truncate(coefficients: np.ndarray, lmax: int) -> np.ndarray:
     return np.asarray(coefficients)[: (lmax + 1) ** 2]
 
 
+@robust_figure
 def latlong_lighting_figure(coefficients: np.ndarray, ill_from: int | None = None,
                             height: int = 64):
     """Recovered lighting as a lat-long image (display-encoded; negative ringing shown black).
@@ -208,6 +281,7 @@ def _sphere_view(n_px: int, view: np.ndarray, up: np.ndarray):
     return n, hit, v
 
 
+@robust_figure
 def relit_spheres_figure(coefficients: np.ndarray, albedo=(1.0, 1.0, 1.0), n_px: int = 96):
     """Spheres re-lit under the recovered lighting, seen from +x, +y and above (+z).
 
@@ -294,6 +368,7 @@ def brdf_spec_from_results(brdf: dict):
         return None
 
 
+@robust_figure
 def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     """BRDF slices ``f(θi; θo)`` in the plane of incidence, and polar lobes ``f cosθi``.
 
