@@ -29,6 +29,7 @@ from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
 from .conditioning import band_statistics, noise_level
+from .memory import check_dense_memory
 from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
@@ -222,6 +223,8 @@ def fit_brdf_isotropic(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.T
         (statistics per ``l``), ``ill_conditioned_from_l``, ``solution``.
     """
     pmax = lmax if pmax is None else pmax
+    check_dense_memory((normal.shape[0], radiance.shape[1], len(_lpk_index(lmax, pmax))),
+                       "dense isotropic BRDF design (N x C x J)", normal.device, count=2)
     a, idx = isotropic_design(normal, wo, light_sh, lmax, pmax)
     b = radiance.to(torch.float64)
     w, src = noise_weights(b, None if variance is None else variance.to(torch.float64))
