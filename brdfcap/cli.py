@@ -76,8 +76,23 @@ def _batch_echo(line: str) -> None:
               show_default=True, help="How the Tikhonov weight is chosen (docs/fitting.md).")
 @click.option("--brdf-lmax", type=click.IntRange(0, 200), default=8, show_default=True,
               help="Highest band of SH-domain BRDF filters (problems brdf/both).")
-@click.option("--jobs", "-j", type=click.IntRange(0, 256), default=1, show_default=True,
-              help="Worker processes for a batch (0: one per CPU core).")
+@click.option("--jobs", "-j", type=click.IntRange(0, 4096), default=1, show_default=True,
+              help="Dask workers for a batch: local worker processes (0: one per CPU core), "
+                   "or job-queue workers with --cluster (docs/batch.md).")
+@click.option("--scheduler", default=None, metavar="ADDRESS|FILE",
+              help="Run the batch on an existing Dask cluster: tcp://HOST:PORT or a scheduler "
+                   "file (docs/batch.md).")
+@click.option("--cluster", type=click.Choice(["slurm", "pbs", "sge", "lsf"]), default=None,
+              help="Start the Dask workers as batch jobs through dask-jobqueue "
+                   "(pip install 'brdfcap[cluster]'; docs/batch.md).")
+@click.option("--cluster-config", type=click.Path(path_type=Path), default=None,
+              help="TOML file whose [cluster] table configures --cluster (queue, account, "
+                   "cores, memory, walltime, ...); default: ~/.config/dask/jobqueue.yaml.")
+@click.option("--connect-timeout", type=click.FloatRange(0.1, 3600), default=30.0,
+              show_default=True, help="Seconds to wait for --scheduler to answer.")
+@click.option("--allow-outside", is_flag=True,
+              help="Let capture.toml name input files outside the capture folder "
+                   "(docs/capture-format.md#where-inputs-may-live).")
 @click.option("--force", is_flag=True,
               help="Re-run captures whose inputs, options and code version are unchanged.")
 @click.option("--progress/--no-progress", default=None,
@@ -88,15 +103,17 @@ def _batch_echo(line: str) -> None:
 @click.option("--debug", "debug_local", is_flag=True, help="Show tracebacks.")
 @click.pass_obj
 def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, problem: str,
-            brdf: str | None, rule: str, brdf_lmax: int, jobs: int, force: bool,
-            progress: bool | None, bench: bool, debug_local: bool) -> None:
+            brdf: str | None, rule: str, brdf_lmax: int, jobs: int, scheduler: str | None,
+            cluster: str | None, cluster_config: Path | None, connect_timeout: float,
+            allow_outside: bool, force: bool, progress: bool | None, bench: bool,
+            debug_local: bool) -> None:
     """Run the pipeline on a capture directory, or on every capture under PATH (a batch).
 
     A batch writes OUT/<capture path>/ per capture plus OUT/index.html and OUT/batch.json;
     captures whose inputs, options and code are unchanged are skipped (--force re-runs them).
     Exit status 1 when any capture failed.
     """
-    from brdfcap.batch import run_batch
+    from brdfcap.batch import read_cluster_config, run_batch
     from brdfcap.pipeline import RunOptions
 
     debug = obj.debug or debug_local
@@ -127,7 +144,12 @@ def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, problem: s
     try:
         outcome = run_batch(path, out, opts, jobs=jobs, force=force, progress=progress, cli=cli,
                             report_extras=extras, hash_extra=hash_extra,
-                            echo=None if single else _batch_echo)
+                            echo=None if single else _batch_echo, scheduler=scheduler,
+                            cluster=cluster, connect_timeout=connect_timeout,
+                            cluster_config=read_cluster_config(cluster_config)
+                            if cluster_config else None, allow_outside=allow_outside)
+    except BrdfcapError as exc:
+        _fail(exc, debug)
     except KeyboardInterrupt:
         click.echo("interrupted: finished captures are complete; re-run to do the rest",
                    err=True)
@@ -142,9 +164,11 @@ def run_cmd(obj: _Ctx, path: Path, out: Path, lmax: int, device: str, problem: s
                     else "ok: ") + f"{rec.capture_dir} -> {Path(rec.out_dir) / 'report.html'}")
         return
     n = len(outcome.records)
+    ignored = outcome.count("ignored")
     click.echo(f"{outcome.count('ok')} ran, {outcome.count('skipped')} skipped (unchanged), "
-               f"{outcome.count('failed')} failed of {n} capture(s) in {outcome.seconds:.1f} s; "
-               f"index: {outcome.index_path}")
+               f"{outcome.count('failed')} failed"
+               + (f", {ignored} not run (see the index)" if ignored else "")
+               + f" of {n} capture(s) in {outcome.seconds:.1f} s; index: {outcome.index_path}")
     if outcome.failed:
         click.echo(f"{len(outcome.failed)} of {n} capture(s) failed", err=True)
         sys.exit(1)
@@ -215,14 +239,52 @@ def entry() -> None:
     """
     import os
 
-    code = 0
-    try:
-        main(standalone_mode=True)
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    sys.stdout.flush()
-    sys.stderr.flush()
+    code = _run_main()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except OSError:  # a closed pipe: the reason was already said on stderr, if it could be
+            pass
     os._exit(code)
+
+
+def _run_main() -> int:
+    """Run :func:`main` and turn every way out into an exit status with its reason printed.
+
+    Click's standalone mode exits 1 silently on a ``BrokenPipeError`` (for example from a
+    pipe closed under the progress output, or from multiprocessing's resource tracker); here
+    each exit path prints one line saying why.
+    """
+    import errno
+
+    def say(line: str) -> None:
+        try:
+            click.echo(line, err=True)
+        except OSError:
+            pass
+
+    try:
+        rv = main(standalone_mode=False)  # --help and --version return their exit status
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        say("interrupted")
+        return 130
+    except OSError as exc:
+        if exc.errno == errno.EPIPE:
+            say("error: output pipe closed (broken pipe) before brdfcap finished writing")
+            return 1
+        say(f"error: internal error {type(exc).__name__}: {exc} (--debug shows where)")
+        return 1
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: say what happened
+        say(f"error: internal error {type(exc).__name__}: {exc} (--debug shows where)")
+        return 1
+    return rv if isinstance(rv, int) else 0
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -113,5 +113,5 @@ def _template(tmp_path: Path) -> Path:
     o3d.io.write_triangle_mesh(str(cap.parent / "sphere.ply"), om)
     toml = (cap / "capture.toml").read_text().replace('mesh = "sphere.ply"',
                                                       'mesh = "../sphere.ply"')
-    (cap / "capture.toml").write_text(toml)
+    (cap / "capture.toml").write_text(toml + '\n[paths]\nroot = ".."\n')
     return cap
