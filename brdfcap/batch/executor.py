@@ -103,7 +103,8 @@ def jobqueue_cluster(name: str, config: dict | None = None):
         raise BrdfcapError("--cluster needs dask-jobqueue: pip install 'brdfcap[cluster]'") \
             from None
     cls = getattr(dask_jobqueue, JOBQUEUE_CLUSTERS[name])
-    kw = {"processes": 1, "cores": 1, "memory": "4GiB"} | dict(config or {})
+    kw = {"cores": 1, "memory": "4GiB"} | dict(config or {})
+    kw.setdefault("processes", kw["cores"])  # one single-threaded worker process per core
     try:
         return cls(**kw)
     except (TypeError, ValueError) as exc:
