@@ -34,10 +34,10 @@ def discover(root: str | Path) -> Discovery:
     root = Path(root)
     if (root / "capture.toml").is_file():
         return Discovery([root], [])
-    captures: dict[str, Path] = {}  # real path -> first path found
+    captures: dict[str, tuple[Path, bool]] = {}  # real path -> (path found, through a link)
     ignored: list[tuple[Path, str]] = []
 
-    def walk(d: Path, ancestors: tuple[str, ...]) -> None:
+    def walk(d: Path, ancestors: tuple[str, ...], linked: bool) -> None:
         try:
             entries = sorted(os.scandir(d), key=lambda e: e.name)
         except OSError as exc:
@@ -56,15 +56,21 @@ def discover(root: str | Path) -> Discovery:
             if e.is_symlink() and real in ancestors:
                 ignored.append((p, f"symbolic link loop (leads back to {real})"))
                 continue
+            via_link = linked or e.is_symlink()
             if (p / "capture.toml").is_file():
                 if real in captures:
-                    ignored.append((p, f"same capture as {captures[real]} (symbolic link)"))
+                    first, first_linked = captures[real]
+                    if first_linked and not via_link:  # keep the real folder, list the link
+                        captures[real] = (p, via_link)
+                        ignored.append((first, f"same capture as {p} (symbolic link)"))
+                    else:
+                        ignored.append((p, f"same capture as {first} (symbolic link)"))
                     continue
-                captures[real] = p
-            walk(p, ancestors + (real,))
+                captures[real] = (p, via_link)
+            walk(p, ancestors + (real,), via_link)
 
-    walk(root, (os.path.realpath(root),))
-    return Discovery(sorted(captures.values()), sorted(ignored))
+    walk(root, (os.path.realpath(root),), False)
+    return Discovery(sorted(p for p, _ in captures.values()), sorted(ignored))
 
 
 def find_captures(root: str | Path) -> list[Path]:
