@@ -145,6 +145,10 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
     """
     from distributed import Client
 
+    # the client logs a traceback when the scheduler goes away; brdfcap says it in one line
+    client_log = logging.getLogger("distributed.client")
+    old_level = client_log.level
+    client_log.setLevel(logging.CRITICAL)
     cluster = None
     try:
         if spec.scheduler:
@@ -174,6 +178,7 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
     except BrdfcapError:
         if cluster is not None:
             cluster.close()
+        client_log.setLevel(old_level)
         raise
     try:
         if echo and client.dashboard_link:
@@ -185,6 +190,7 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close(timeout=10)
+        client_log.setLevel(old_level)
 
 
 def probe_paths(root: str, capture_toml: str, out: str, token_file: str, token: str) -> str | None:
@@ -303,7 +309,7 @@ def run_on_dask(client, tasks: list[CaptureTask], on_record: Callable[[CaptureRe
                     clean_stale_tmp(Path(t.out_dir))
                     rec = record_failure(rec, Path(t.out_dir))
             except (FutureCancelledError, OSError) as exc:
-                if client.status not in ("running", "connecting"):
+                if client.status != "running" or "connection-lost" in str(exc):
                     raise _lost(client, done, len(tasks)) from None
                 rec = _failed(t, type(exc).__name__, f"{t.capture_dir}: task cancelled ({exc})")
             except Exception as exc:  # noqa: BLE001 - serialisation or similar: recorded
@@ -331,5 +337,5 @@ def _lost(client, done: int, total: int) -> BrdfcapError:
 
 def _failed(t: CaptureTask, etype: str, msg: str) -> CaptureRecord:
     return CaptureRecord(name=Path(t.capture_dir).name, capture_dir=t.capture_dir,
-                         out_dir=t.out_dir, rel=t.rel, status="failed", error=msg,
-                         error_type=etype)
+                         out_dir=t.out_dir, rel=t.rel, status="failed",
+                         error=" ".join(msg.split()), error_type=etype)

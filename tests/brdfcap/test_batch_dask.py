@@ -253,3 +253,47 @@ def test_gpu_worker_runs_auto_device_on_cuda(tiny_capture, tmp_path):
     devices = {json.loads((tmp_path / "out" / n / "results.json").read_text())["device"]
                for n in ("a", "b")}
     assert any(d.startswith("cuda") for d in devices), devices
+
+
+@pytest.mark.slow
+def test_lost_scheduler_then_rerun_completes(reference, tmp_path):
+    """The scheduler dies mid-batch: one line saying to re-run; the re-run does the rest."""
+    from distributed import LocalCluster
+
+    root, _ = reference
+    out = tmp_path / "out"
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                           dashboard_address=":0")
+
+    def stop_scheduler() -> None:
+        deadline = time.monotonic() + 240
+        while not list(out.glob("cap_*/results.json")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        cluster.close()
+
+    th = threading.Thread(target=stop_scheduler, daemon=True)
+    th.start()
+    t0 = time.monotonic()
+    r = CliRunner().invoke(main, ["run", str(root), "--out", str(out), "--no-progress",
+                                  "--scheduler", cluster.scheduler_address,
+                                  "--connect-timeout", "5"])
+    th.join(timeout=30)
+    assert r.exit_code == 1, r.output
+    err = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "lost the connection to the Dask scheduler" in err[0], r.output
+    assert "run the same command again" in err[0] and time.monotonic() - t0 < 200
+    done = len(list(out.glob("cap_*/results.json")))
+    assert 1 <= done < 8
+    _no_partial_files_except_missing(out)
+    r2 = CliRunner().invoke(main, ["run", str(root), "--out", str(out), "--no-progress",
+                                   "--jobs", "2"])
+    assert r2.exit_code == 0, r2.output
+    batch = json.loads((out / "batch.json").read_text())
+    assert batch["counts"]["ok"] + batch["counts"]["skipped"] == 8
+    assert batch["counts"]["skipped"] >= done
+
+
+def _no_partial_files_except_missing(out: Path) -> None:
+    """Every report present is complete; temp files only where a worker was cut off."""
+    for rep in out.glob("cap_*/report.html"):
+        assert rep.read_text().rstrip().endswith("</html>")
