@@ -115,7 +115,7 @@ def jobqueue_cluster(name: str, config: dict | None = None):
 def _local_cluster(spec: ClusterSpec):
     from distributed import LocalCluster, Nanny, Scheduler, SpecCluster
 
-    common = {"nthreads": 1, "silence_logs": logging.ERROR}
+    common = {"nthreads": 1, "silence_logs": logging.ERROR, "host": "127.0.0.1"}
     if spec.gpus <= 0:
         return LocalCluster(n_workers=spec.jobs, threads_per_worker=1, processes=True,
                             dashboard_address=":0", silence_logs=logging.ERROR)
@@ -128,9 +128,8 @@ def _local_cluster(spec: ClusterSpec):
         else:
             opts["env"] = {"CUDA_VISIBLE_DEVICES": ""}
         workers[f"worker-{i}"] = {"cls": Nanny, "options": opts}
-    return SpecCluster(workers=workers, scheduler={"cls": Scheduler,
-                                                   "options": {"dashboard_address": ":0"}},
-                       silence_logs=logging.ERROR)
+    return SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {
+        "dashboard_address": ":0", "host": "127.0.0.1"}}, silence_logs=logging.ERROR)
 
 
 @contextlib.contextmanager
@@ -181,8 +180,9 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
         client_log.setLevel(old_level)
         raise
     try:
-        if echo and client.dashboard_link:
-            echo(f"Dask dashboard: {client.dashboard_link}")
+        if echo:
+            echo(f"Dask dashboard: {client.dashboard_link}" if _has_dashboard() else
+                 "Dask dashboard: not served (it needs bokeh: pip install 'brdfcap[cluster]')")
         yield client
     finally:
         with contextlib.suppress(Exception):
@@ -191,6 +191,15 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
             with contextlib.suppress(Exception):
                 cluster.close(timeout=10)
         client_log.setLevel(old_level)
+
+
+def _has_dashboard() -> bool:
+    """Whether this process can serve Dask's dashboard (a scheduler started here needs bokeh)."""
+    try:
+        import bokeh  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def probe_paths(root: str, capture_toml: str, out: str, token_file: str, token: str) -> str | None:
