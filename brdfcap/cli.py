@@ -263,9 +263,17 @@ def _run_main() -> int:
         except OSError:
             pass
 
+    def internal(exc: BaseException) -> int:
+        if "--debug" in sys.argv[1:]:
+            traceback.print_exception(exc)
+        say(f"error: internal error {type(exc).__name__}: {exc} (--debug shows where)")
+        return 1
+
     try:
         rv = main(standalone_mode=False)  # --help and --version return their exit status
     except SystemExit as exc:
+        if isinstance(exc.code, str):
+            say(exc.code)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     except click.exceptions.Exit as exc:
         return exc.exit_code
@@ -279,11 +287,9 @@ def _run_main() -> int:
         if exc.errno == errno.EPIPE:
             say("error: output pipe closed (broken pipe) before brdfcap finished writing")
             return 1
-        say(f"error: internal error {type(exc).__name__}: {exc} (--debug shows where)")
-        return 1
+        return internal(exc)
     except Exception as exc:  # noqa: BLE001 - the last line of defence: say what happened
-        say(f"error: internal error {type(exc).__name__}: {exc} (--debug shows where)")
-        return 1
+        return internal(exc)
     return rv if isinstance(rv, int) else 0
 
 
