@@ -172,7 +172,15 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
                 echo(f"submitted {max(1, spec.jobs)} {spec.cluster} worker job(s); captures "
                      f"start when the queue runs them")
         else:
-            cluster = _local_cluster(spec)
+            try:
+                cluster = _local_cluster(spec)
+            except Exception as exc:  # noqa: BLE001 - said in one line, with the usual cause
+                reason = " ".join(str(exc).split()) or type(exc).__name__
+                raise BrdfcapError(
+                    f"could not start the local Dask cluster of {spec.jobs} worker(s) ({reason});"
+                    f" a Python script that calls run_batch needs "
+                    f"'if __name__ == \"__main__\":' around it (workers import the script)"
+                ) from None
             client = Client(cluster)
     except BrdfcapError:
         if cluster is not None:
