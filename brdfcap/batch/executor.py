@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shutil
 import socket
 import uuid
 from collections.abc import Iterator
@@ -103,6 +104,10 @@ def jobqueue_cluster(name: str, config: dict | None = None):
         raise BrdfcapError("--cluster needs dask-jobqueue: pip install 'brdfcap[cluster]'") \
             from None
     cls = getattr(dask_jobqueue, JOBQUEUE_CLUSTERS[name])
+    submit = str(getattr(cls.job_cls, "submit_command", "") or "").split()
+    if submit and shutil.which(submit[0]) is None:
+        raise BrdfcapError(f"--cluster {name}: '{submit[0]}' is not on this machine's PATH; run "
+                           f"brdfcap on a login node of the {name.upper()} cluster")
     kw = {"cores": 1, "memory": "4GiB"} | dict(config or {})
     kw.setdefault("processes", kw["cores"])  # one single-threaded worker process per core
     try:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import signal
 import socket
 import threading
@@ -213,7 +214,7 @@ def test_worker_that_cannot_see_out_is_named(tmp_path):
                                         str(tok), "abc")
 
 
-def test_slurm_cluster_from_a_cluster_table(tmp_path):
+def test_slurm_cluster_from_a_cluster_table(tmp_path, monkeypatch):
     """--cluster slurm with a [cluster] table: the job script carries queue, account, memory."""
     pytest.importorskip("dask_jobqueue")
     from brdfcap.batch import read_cluster_config
@@ -222,6 +223,8 @@ def test_slurm_cluster_from_a_cluster_table(tmp_path):
     cfg = tmp_path / "run.toml"
     cfg.write_text('[cluster]\nqueue = "gpu-short"\naccount = "lab42"\ncores = 4\n'
                    'memory = "16GiB"\nwalltime = "02:00:00"\n')
+    if shutil.which("sbatch") is None:  # job scripts are built the same without Slurm
+        monkeypatch.setattr(shutil, "which", lambda cmd, *a, **k: f"/usr/bin/{cmd}")
     cluster = jobqueue_cluster("slurm", read_cluster_config(cfg))
     try:
         script = cluster.job_script()
@@ -313,3 +316,16 @@ def test_local_gpu_layout_one_device_per_worker():
     layout = sorted((w["resources"].get("GPU", 0), env[a]) for a, w in info.items())
     assert layout == [(0, ""), (1, "0")]
     assert all(a.startswith("tcp://127.0.0.1:") for a in info)
+
+
+def test_cluster_without_its_queue_commands_is_one_line(make_root, tmp_path, monkeypatch):
+    """--cluster slurm where sbatch is missing: one line, before any job or capture."""
+    pytest.importorskip("dask_jobqueue")
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    root = tmp_path / "root"
+    make_root(root, ["a", "b"])
+    r = CliRunner().invoke(main, ["run", str(root), "--out", str(tmp_path / "out"),
+                                  "--cluster", "slurm", "--no-progress"])
+    assert r.exit_code == 1
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1 and "'sbatch' is not on this machine's PATH" in lines[0]
