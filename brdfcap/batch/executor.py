@@ -187,6 +187,9 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
                     f"'if __name__ == \"__main__\":' around it (workers import the script)"
                 ) from None
             client = Client(cluster)
+            from .worker_setup import IgnoreSigint  # imports distributed's plugin base
+
+            client.register_plugin(IgnoreSigint())
     except BrdfcapError:
         if cluster is not None:
             cluster.close()

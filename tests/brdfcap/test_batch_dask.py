@@ -329,3 +329,41 @@ def test_cluster_without_its_queue_commands_is_one_line(make_root, tmp_path, mon
     assert r.exit_code == 1
     lines = r.output.strip().splitlines()
     assert len(lines) == 1 and "'sbatch' is not on this machine's PATH" in lines[0]
+
+
+@pytest.mark.slow
+def test_ctrl_c_leaves_only_complete_files(reference, tmp_path):
+    """SIGINT to the process group (Ctrl-C in a terminal): exit 130 with its reason.
+
+    Only complete files remain, no worker is left behind, and the same command then finishes
+    the rest.
+    """
+    import subprocess
+    import sys
+
+    root, _ = reference
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "brdfcap.cli", "run", str(root), "--out", str(out),
+           "--jobs", "2", "--no-progress"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    deadline = time.monotonic() + 300
+    while not list(out.glob("cap_*/results.json")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    said = [ln for ln in err.splitlines() if ln.startswith(("interrupted", "error"))]
+    assert said and said[0].startswith("interrupted"), err
+    time.sleep(3.0)  # the last worker is reaped
+    assert not list(out.rglob("*.tmp"))
+    for rep in out.glob("cap_*/report.html"):
+        assert rep.read_text().rstrip().endswith("</html>")
+    with pytest.raises(ProcessLookupError):  # the session's workers are gone
+        os.killpg(p.pid, 0)
+    done = len(list(out.glob("cap_*/results.json")))
+    p2 = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert p2.returncode == 0, p2.stderr
+    batch = json.loads((out / "batch.json").read_text())
+    assert batch["counts"]["skipped"] >= done and batch["counts"]["failed"] == 0
