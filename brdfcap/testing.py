@@ -124,7 +124,9 @@ def make_tiny_capture(directory: Path) -> Path:
     o3d.io.write_triangle_mesh(str(cap.parent / "sphere.ply"), om)
     toml = (cap / "capture.toml").read_text().replace('mesh = "sphere.ply"',
                                                       'mesh = "../sphere.ply"')
-    (cap / "capture.toml").write_text(toml)
+    # the shared mesh lies outside the capture: widen the input folder explicitly
+    # (docs/capture-format.md#where-inputs-may-live)
+    (cap / "capture.toml").write_text(toml + '\n[paths]\nroot = ".."\n')
     return cap
 
 

@@ -16,6 +16,7 @@ from brdfcap.fit.brdf_models import BRDF_MODELS
 
 from brdfcap.core.errors import CaptureError
 
+from .paths import declared_inputs, input_root, resolve_input
 from .raw import RAW_OPTION_KEYS
 from .types import (
     RGB,
@@ -41,7 +42,8 @@ CAPTURE_FORMAT = "brdfcap/1"
 #: Known keys per table; anything else produces a warning. Later stages extend these sets.
 KNOWN_KEYS: dict[str, set[str]] = {
     "": {"format", "name", "geometry", "camera", "lighting", "images", "noise", "material",
-         "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor"},
+         "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor",
+         "paths"},
     "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask",
                  "frame_check"},
     "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},
@@ -357,6 +359,9 @@ def load_config(capture_dir: str | Path) -> CaptureConfig:
     if fmt != CAPTURE_FORMAT:
         raise CaptureError(f"key 'format' must be {CAPTURE_FORMAT!r}, got {fmt!r}", toml_path)
     name = str(doc.get("name", root.name))
+    base = input_root(root, doc, toml_path)  # capture/paths.py: inputs confined to the capture
+    for key, value in declared_inputs(doc):
+        resolve_input(root, value, key, toml_path, base=base)
 
     geom = _get(doc, "geometry", "", toml_path, (dict,))
     _unknown(geom, "geometry", "geometry.", warnings)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -222,7 +223,7 @@ def import_diligent(src: str | Path, out: str | Path, *, copy_images: bool = Tru
             dst = out / "images" / f.name
             shutil.copyfile(f, dst)
             rel = f"images/{f.name}"
-        else:
+        else:  # inside the [paths] root written below
             rel = str(f.resolve())
         images.append({"file": rel, "world_to_camera": DILIGENT_WORLD_TO_CAMERA,
                        "light": {"direction": data.light_directions[k],
@@ -236,6 +237,9 @@ def import_diligent(src: str | Path, out: str | Path, *, copy_images: bool = Tru
                    "pixel_size": 1.0},
         "lighting": {"kind": "directional"},
     }
+    if not copy_images:  # the photographs stay in the source: widen the input folder to it
+        common = os.path.commonpath([out.resolve(), data.root.resolve()])
+        tables["paths"] = {"root": os.path.relpath(common, out.resolve())}
     write_capture_toml(out / "capture.toml", top, tables, images)
     prov = {"source": str(data.root.resolve()), "layout": "DiLiGenT (Shi et al. CVPR 2016)",
             "images": len(data.files), "normals_source": data.normals_source,

@@ -46,11 +46,56 @@ def entry() -> None:
     (``os._exit``) avoids spurious "nanobind: leaked instance" messages that OpenImageIO's
     bindings print at shutdown when colour-science still holds OIIO type objects.
     """
-    code = 0
-    try:
-        main(standalone_mode=True)
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    sys.stdout.flush()
-    sys.stderr.flush()
+    code = _run_main()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except OSError:  # a closed pipe: the reason was already said on stderr, if it could be
+            pass
     os._exit(code)
+
+
+def _run_main() -> int:
+    """Run :func:`main` and turn every way out into an exit status with its reason printed.
+
+    Click's standalone mode exits 1 silently on a ``BrokenPipeError`` (for example from a
+    pipe closed under the progress output, or from multiprocessing's resource tracker); here
+    each exit path prints one line saying why.
+    """
+    import errno
+    import traceback
+
+    def say(line: str) -> None:
+        try:
+            click.echo(line, err=True)
+        except OSError:
+            pass
+
+    def internal(exc: BaseException) -> int:
+        if "--debug" in sys.argv[1:]:
+            traceback.print_exception(exc)
+        say(f"error: internal error {type(exc).__name__}: {exc} (--debug shows where)")
+        return 1
+
+    try:
+        rv = main(standalone_mode=False)  # --help and --version return their exit status
+    except SystemExit as exc:
+        if isinstance(exc.code, str):
+            say(exc.code)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        say("interrupted")
+        return 130
+    except OSError as exc:
+        if exc.errno == errno.EPIPE:
+            say("error: output pipe closed (broken pipe) before brdfcap finished writing")
+            return 1
+        return internal(exc)
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: say what happened
+        return internal(exc)
+    return rv if isinstance(rv, int) else 0

@@ -13,7 +13,7 @@ import click
 
 from brdfcap.baselines import bench_for_report
 from brdfcap.batch import find_captures as _find
-from brdfcap.batch import run_batch
+from brdfcap.batch import read_cluster_config, run_batch
 from brdfcap.capture.config import load_config
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.fit.brdf_models import BRDF_MODELS
@@ -59,8 +59,23 @@ def _batch_echo(line: str) -> None:
               show_default=True, help="How the Tikhonov weight is chosen (docs/fitting.md).")
 @click.option("--brdf-lmax", type=click.IntRange(0, 200), default=8, show_default=True,
               help="Highest band of SH-domain BRDF filters (problems brdf/both).")
-@click.option("--jobs", "-j", type=click.IntRange(0, 256), default=1, show_default=True,
-              help="Worker processes for a batch (0: one per CPU core).")
+@click.option("--jobs", "-j", type=click.IntRange(0, 4096), default=1, show_default=True,
+              help="Dask workers for a batch: local worker processes (0: one per CPU core), "
+                   "or job-queue workers with --cluster (docs/batch.md).")
+@click.option("--scheduler", default=None, metavar="ADDRESS|FILE",
+              help="Run the batch on an existing Dask cluster: tcp://HOST:PORT or a scheduler "
+                   "file (docs/batch.md).")
+@click.option("--cluster", type=click.Choice(["slurm", "pbs", "sge", "lsf"]), default=None,
+              help="Start the Dask workers as batch jobs through dask-jobqueue "
+                   "(pip install 'brdfcap[cluster]'; docs/batch.md).")
+@click.option("--cluster-config", type=click.Path(path_type=Path), default=None,
+              help="TOML file whose [cluster] table configures --cluster (queue, account, "
+                   "cores, memory, walltime, ...); default: ~/.config/dask/jobqueue.yaml.")
+@click.option("--connect-timeout", type=click.FloatRange(0.1, 3600), default=30.0,
+              show_default=True, help="Seconds to wait for --scheduler to answer.")
+@click.option("--allow-outside", is_flag=True,
+              help="Let capture.toml name input files outside the capture folder "
+                   "(docs/capture-format.md#where-inputs-may-live).")
 @click.option("--force", is_flag=True,
               help="Re-run captures whose inputs, options and code version are unchanged.")
 @click.option("--progress/--no-progress", default=None,
@@ -71,8 +86,10 @@ def _batch_echo(line: str) -> None:
 @click.option("--debug", "debug_local", is_flag=True, help="Show tracebacks.")
 @click.pass_obj
 def run_cmd(obj: CliState, path: Path, out: Path, lmax: int, device: str, problem: str,
-            brdf: str | None, rule: str, brdf_lmax: int, jobs: int, force: bool,
-            progress: bool | None, bench: bool, debug_local: bool) -> None:
+            brdf: str | None, rule: str, brdf_lmax: int, jobs: int, scheduler: str | None,
+            cluster: str | None, cluster_config: Path | None, connect_timeout: float,
+            allow_outside: bool, force: bool, progress: bool | None, bench: bool,
+            debug_local: bool) -> None:
     """Run the pipeline on a capture directory, or on every capture under PATH (a batch).
 
     A batch writes OUT/<capture path>/ per capture plus OUT/index.html and OUT/batch.json;
@@ -110,7 +127,12 @@ def run_cmd(obj: CliState, path: Path, out: Path, lmax: int, device: str, proble
     try:
         outcome = run_batch(path, out, opts, jobs=jobs, force=force, progress=progress, cli=cli,
                             report_extras=extras, hash_extra=hash_extra,
-                            echo=None if single else _batch_echo)
+                            echo=None if single else _batch_echo, scheduler=scheduler,
+                            cluster=cluster, connect_timeout=connect_timeout,
+                            cluster_config=read_cluster_config(cluster_config)
+                            if cluster_config else None, allow_outside=allow_outside)
+    except BrdfcapError as exc:
+        fail(exc, debug)
     except KeyboardInterrupt:
         click.echo("interrupted: finished captures are complete; re-run to do the rest",
                    err=True)
@@ -125,9 +147,11 @@ def run_cmd(obj: CliState, path: Path, out: Path, lmax: int, device: str, proble
                     else "ok: ") + f"{rec.capture_dir} -> {Path(rec.out_dir) / 'report.html'}")
         return
     n = len(outcome.records)
+    ignored = outcome.count("ignored")
     click.echo(f"{outcome.count('ok')} ran, {outcome.count('skipped')} skipped (unchanged), "
-               f"{outcome.count('failed')} failed of {n} capture(s) in {outcome.seconds:.1f} s; "
-               f"index: {outcome.index_path}")
+               f"{outcome.count('failed')} failed"
+               + (f", {ignored} not run (see the index)" if ignored else "")
+               + f" of {n} capture(s) in {outcome.seconds:.1f} s; index: {outcome.index_path}")
     if outcome.failed:
         click.echo(f"{len(outcome.failed)} of {n} capture(s) failed", err=True)
         sys.exit(1)

@@ -1,10 +1,11 @@
 """Provenance: what a run's numbers depend on, hashed and recorded.
 
-``results.json["provenance"]["hash"]`` is the SHA-256 of the capture's input files, the options
-that change results and the code version (brdfcap's version plus a hash of its source files and
-the versions of the libraries that shape its numbers). The batch runner skips a capture whose
-recorded hash equals the new one (``docs/batch.md``). ``config.json`` (:func:`config_record`)
-records how a run was configured.
+``results.json["provenance"]["hash"]`` is the SHA-256 of the capture's input files (those
+``capture.toml`` names as inputs, never any other file a string in it happens to name), the
+options that change results and the code version (brdfcap's version plus a hash of its source
+files and the versions of the libraries that shape its numbers). The batch runner skips a
+capture whose recorded hash equals the new one (``docs/batch.md``). ``config.json``
+(:func:`config_record`) records how a run was configured.
 
 This module sits in the shared core: the pipeline and the batch runner both use it, and it
 imports neither.
@@ -19,17 +20,18 @@ import importlib.metadata as _md
 import json
 import os
 import platform
+import stat
 import sys
+from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-import tomllib
-
 from brdfcap import __version__
+from brdfcap.core.errors import CaptureError
 
-__all__ = ["input_files", "hash_inputs", "code_version", "dependency_versions", "provenance",
-           "config_record", "up_to_date", "versions", "options_dict", "CONFIG_FORMAT"]
+__all__ = ["input_files", "hash_files", "hash_inputs", "code_version", "dependency_versions",
+           "provenance", "config_record", "up_to_date", "versions", "options_dict", "CONFIG_FORMAT"]
 
 CONFIG_FORMAT = "brdfcap-run-config/1"
 #: Libraries whose versions are recorded and enter the code hash (distribution names).
@@ -49,23 +51,14 @@ def _sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
-def _toml_strings(obj) -> list[str]:
-    if isinstance(obj, str):
-        return [obj]
-    if isinstance(obj, dict):
-        return [s for v in obj.values() for s in _toml_strings(v)]
-    if isinstance(obj, list):
-        return [s for v in obj for s in _toml_strings(v)]
-    return []
-
-
 def input_files(capture_dir: str | Path) -> dict[str, Path]:
-    """Files whose content determines a capture's results, keyed by a stable name.
+    """Fallback list of input files: ``capture.toml`` and the regular files inside the capture.
 
-    Every regular file under the capture directory (except hidden files, ``*.tmp`` and nested
-    captures) plus every file that a string value in ``capture.toml`` names relative to the
-    capture directory (a shared mesh ``../sphere.ply``, dark frames elsewhere). Keys are paths
-    relative to the capture directory (``..`` allowed).
+    Used when the caller passes no list. The batch runner passes the exact list instead: the
+    files ``capture.toml`` names as inputs (``brdfcap.capture.paths.input_files``, which also
+    covers a shared mesh under ``[paths] root``). Hidden files, ``*.tmp``, nested captures,
+    symbolic links that lead out of the capture and anything but regular files are left out;
+    no string of ``capture.toml`` is followed. Keys are paths relative to the capture directory.
     """
     root = Path(capture_dir).resolve()
     files: dict[str, Path] = {}
@@ -73,33 +66,43 @@ def input_files(capture_dir: str | Path) -> dict[str, Path]:
     for p in root.rglob("*"):
         rel = p.relative_to(root)
         if (any(part.startswith(".") for part in rel.parts) or p.suffix == ".tmp"
-                or not p.is_file() or any(n in p.parents for n in nested)):
+                or any(n in p.parents for n in nested)):
             continue
-        files[rel.as_posix()] = p
-    try:
-        doc = tomllib.loads((root / "capture.toml").read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        doc = {}
-    for s in _toml_strings(doc):
-        if not s or len(s) > 4096 or "\n" in s:
-            continue
-        cand = (root / s)
         try:
-            if cand.is_file():
-                key = os.path.relpath(cand.resolve(), root)
-                files.setdefault(Path(key).as_posix(), cand.resolve())
+            real = p.resolve()
+            if not (real.is_relative_to(root) and stat.S_ISREG(os.stat(real).st_mode)):
+                continue
         except OSError:
             continue
+        files[rel.as_posix()] = p
     return dict(sorted(files.items()))
 
 
-def hash_inputs(capture_dir: str | Path) -> tuple[str, dict[str, str]]:
-    """SHA-256 over the input files (name and content): ``(digest, {name: file sha256})``."""
-    per_file = {k: _sha256_file(p) for k, p in input_files(capture_dir).items()}
+def hash_files(files: Mapping[str, Path]) -> tuple[str, dict[str, str]]:
+    """SHA-256 over named files (name and content): ``(digest, {name: file sha256})``.
+
+    Raises
+    ------
+    CaptureError
+        A file cannot be read (permissions, I/O error), naming the file.
+    """
+    per_file = {}
+    for k, p in sorted(files.items()):
+        try:
+            per_file[k] = _sha256_file(p)
+        except OSError as exc:
+            raise CaptureError(f"cannot read this input file ({exc.strerror or exc}); fix its "
+                               f"permissions or remove it from the capture", p) from None
     h = hashlib.sha256()
     for k, v in per_file.items():
         h.update(k.encode() + b"\0" + v.encode() + b"\n")
     return h.hexdigest(), per_file
+
+
+def hash_inputs(capture_dir: str | Path,
+                files: Mapping[str, Path] | None = None) -> tuple[str, dict[str, str]]:
+    """Hash a capture's input files (``files``, default :func:`input_files`): :func:`hash_files`."""
+    return hash_files(input_files(capture_dir) if files is None else files)
 
 
 def dependency_versions() -> dict[str, str]:
@@ -152,7 +155,8 @@ def options_dict(run_options) -> dict:
         run_options)
 
 
-def provenance(capture_dir: str | Path, run_options, extra: dict | None = None) -> dict:
+def provenance(capture_dir: str | Path, run_options, extra: dict | None = None,
+               files: Mapping[str, Path] | None = None) -> dict:
     """Hashes that decide whether a capture must be re-run (recorded in ``results.json``).
 
     Parameters
@@ -164,6 +168,8 @@ def provenance(capture_dir: str | Path, run_options, extra: dict | None = None) 
     extra : dict, optional
         Further settings that change the outputs (e.g. ``{"bench": True}``, which adds a report
         section).
+    files : mapping of str to Path, optional
+        The capture's input files by name; default :func:`input_files`.
 
     Returns
     -------
@@ -171,7 +177,7 @@ def provenance(capture_dir: str | Path, run_options, extra: dict | None = None) 
         ``hash`` (the combined SHA-256), ``input_hash``, ``config_hash``, ``code_hash``,
         ``files`` ({name: sha256}), ``code`` (:func:`code_version`).
     """
-    inp, files = hash_inputs(capture_dir)
+    inp, files = hash_inputs(capture_dir, files)
     cfg = {"options": options_dict(run_options), "extra": extra or {}}
     cfg_hash = hashlib.sha256(json.dumps(cfg, sort_keys=True, default=str).encode()).hexdigest()
     code = code_version()

@@ -111,10 +111,10 @@ def test_batch_failure_isolated_skip_and_index(tiny_template, tmp_path):
     err = json.loads((out / "cap_02" / "error.json").read_text())
     assert "000.exr" in err["error"] and err["traceback"]
     index = (out / "index.html").read_text()
-    assert 'href="cap_00/report.html"' in index and "failed" in index and "000.exr" in index
-    assert 'href="cap_02/report.html"' not in index
+    assert 'href="./cap_00/report.html"' in index and "failed" in index and "000.exr" in index
+    assert 'href="./cap_02/report.html"' not in index
     batch = json.loads((out / "batch.json").read_text())
-    assert batch["counts"] == {"ok": 3, "skipped": 0, "failed": 1}
+    assert batch["counts"] == {"ok": 3, "skipped": 0, "failed": 1, "ignored": 0}
 
     before = _mtimes(out, ["cap_00", "cap_01", "cap_03"])
     res2 = run_batch(root, out, RunOptions(lmax=2), jobs=2, progress=False)
@@ -163,14 +163,14 @@ def test_batch_of_20_with_one_corrupted(tiny_template, tmp_path):
     assert p.returncode == 1, p.stderr
     assert len(list(out.glob("cap_*/report.html"))) == 19
     batch = json.loads((out / "batch.json").read_text())
-    assert batch["counts"] == {"ok": 19, "skipped": 0, "failed": 1}
+    assert batch["counts"] == {"ok": 19, "skipped": 0, "failed": 1, "ignored": 0}
     assert "cap_07" in (out / "index.html").read_text()
     code = _code_hash(out)
     p2 = subprocess.run(cmd, capture_output=True, text=True, env=env)
     _skip_if_code_changed(code)
     assert p2.returncode == 1
     batch2 = json.loads((out / "batch.json").read_text())
-    assert batch2["counts"] == {"ok": 0, "skipped": 19, "failed": 1}
+    assert batch2["counts"] == {"ok": 0, "skipped": 19, "failed": 1, "ignored": 0}
 
 
 @pytest.mark.slow

@@ -148,7 +148,7 @@ def test_index_lists_failures_and_sorts(tmp_path):
             CaptureRecord("b", "/c/b", str(tmp_path / "b"), "b", "failed", 0.1,
                           error="/c/b/images/000.exr: cannot open image <bad>")]
     html = render_index(BatchOutcome(recs, tmp_path, seconds=2.0), tmp_path)
-    assert 'href="a/report.html"' in html
+    assert 'href="./a/report.html"' in html
     assert "cannot open image &lt;bad&gt;" in html  # escaped
     assert 'data-sort="0.01"' in html and 'data-type="num"' in html
     assert re.search(r'<tr class="row-failed">', html)
