@@ -84,14 +84,15 @@ def _apply(a: torch.Tensor, scale: torch.Tensor | None, x: torch.Tensor) -> torc
 
 
 def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> int:
-    """Bandwidth the lighting is solved to: what the BRDF filter carries above ``lmax``.
+    """Smallest bandwidth the lighting is solved to: what the BRDF filter carries above ``lmax``.
 
     The smallest ``L ≥ lmax + 2`` beyond which the filtered amplitude of a band of a power-law
     spectrum, ``|f_l| sqrt(2l+1)/(l+1)`` (``f_l`` the larger of the diffuse and specular
     filters times their scales; slope 2 of :data:`brdfcap.fit.solve.SLOPE_PRIOR`), stays below
     :data:`INTERNAL_REL` of the DC's (R&H 2001 §3: ``B_lm = Λ_l ρ̂_l L_lm``, so bands the filter
     kills cannot alias into the data), capped at :data:`INTERNAL_LMAX_CAP` and at
-    ``sqrt(n_samples)``.
+    ``sqrt(n_samples)``. :func:`fit_lighting` also tries larger bandwidths up to the cap and
+    keeps the one of highest evidence (a real probe's spectrum is flatter than slope 2).
     """
     top = INTERNAL_LMAX_CAP
     fd = diffuse_filter(top) * float(spec.kd.abs().max()) if spec.kd.numel() else 0.0
@@ -254,14 +255,20 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     auto = lmax == "auto"
     lrep = 0 if auto else int(lmax)
     nsamp = int(((w > 0).any(-1)).sum())
-    lint = lmax_internal if lmax_internal is not None else internal_lmax(
-        spec, INTERNAL_LMAX_CAP if auto else lrep, nsamp)
-    lint = max(lint, lrep)
+    if lmax_internal is not None:
+        cands = [max(int(lmax_internal), lrep)]
+    else:
+        l0 = internal_lmax(spec, lrep, nsamp)
+        cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1))))
+        cands = sorted({max(l0, lrep), max((l0 + cap) // 2, lrep), cap}) if not auto else [cap]
+    lint = cands[-1]
     band = band_of_index(lint).to(n.device)
     design, cscale = lighting_design(spec, n, r, lint)
     split = _split_halves(n.shape[0], view, good)
     full = solve_bayes(design, b, w, band, noise_known=noise_known, noise_source=src,
-                       chunk=chunk, channel_scale=cscale, split=split)
+                       chunk=chunk, channel_scale=cscale, split=split, bandwidths=cands)
+    lint = int(full.band.max())
+    cands = [lint]
     if noise_model is not None and getattr(noise_model, "is_known", False):
         pred = b - full.bayes.residual
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
@@ -270,7 +277,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         noise_known = True
         full = solve_bayes(design, b, w, band, noise_known=True,
                            noise_source=src + " (IRLS at the fit)", chunk=chunk,
-                           channel_scale=cscale, split=split)
+                           channel_scale=cscale, split=split, bandwidths=cands)
     filt = _band_filter(spec, lint)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)

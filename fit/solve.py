@@ -445,7 +445,8 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
                 w: torch.Tensor, band: torch.Tensor, *, noise_known: bool = True,
                 noise_source: str = "", chunk: int = 65536,
                 channel_scale: torch.Tensor | None = None, split: torch.Tensor | None = None,
-                slopes: torch.Tensor | None = None) -> LinearSolution:
+                slopes: torch.Tensor | None = None,
+                bandwidths: list[int] | None = None) -> LinearSolution:
     r"""Gaussian posterior of SH coefficients under a power-law prior fitted by the evidence.
 
     Model, per channel ``c``: ``b = A x + e`` with ``e ~ N(0, σ² W^{-1})`` (``W`` the weights
@@ -477,7 +478,12 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         solved (same hyper-parameters) for the reproducibility check of
         :func:`brdfcap.fit.conditioning.band_statistics_bayes`.
     slopes : torch.Tensor, optional
-        Grid of β (default :data:`SLOPE_GRID`).
+        Grid of β (default :data:`SLOPE_GRID`, searched coarse-to-fine).
+    bandwidths : list of int, optional
+        Candidate internal bandwidths ``L`` (the design holds bands up to ``max(band)``; the
+        Gram of bands ``≤ L`` is its leading block): the one of highest evidence is solved —
+        models of different bandwidth explain the same data, so their marginal likelihoods
+        compare directly (MacKay 1992 §3, "Occam factor"). Default: all of ``band``.
 
     Returns
     -------
@@ -504,13 +510,8 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     sp = None if split is None else split.to(dev).long()
     gram, rhs, halves = _accumulate(design, b, w, cs, chunk, sp)
     btwb = (w * b * b).sum(0)
-    slopes = (SLOPE_GRID if slopes is None else slopes.to(torch.float64)).to(dev)
     grid = EVIDENCE_GRID.to(dev)
-    lp1 = (band + 1).to(torch.float64)
     mu, sd = SLOPE_PRIOR
-
-    # one eigen-decomposition per (channel, β); channels whose Grams are equal up to a scale
-    # (shared design and weights, per-channel albedo) share it
     tr = torch.diagonal(gram, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)
     owner = list(range(nch))
     for c in range(1, nch):
@@ -521,41 +522,76 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
                 break
     cache: dict = {}
 
-    def eig_of(c, beta):
-        ps = lp1 ** (-0.5 * beta)
-        key = (owner[c], beta)
+    def eig_of(c, beta, kc):
+        # one eigen-decomposition per (channel, β, bandwidth); channels whose Grams are equal
+        # up to a scale (shared design and weights, per-channel albedo) share it
+        ps = (band[:kc] + 1).to(torch.float64) ** (-0.5 * beta)
+        key = (owner[c], beta, kc)
         if key not in cache:
-            g = gram[owner[c]] * ps[:, None] * ps[None, :]
+            g = gram[owner[c], :kc, :kc] * ps[:, None] * ps[None, :]
             g = 0.5 * (g + g.T)
             sc = torch.diagonal(g).mean().clamp_min(1e-300)
-            ev, u = torch.linalg.eigh(g / sc)
+            try:
+                ev, u = torch.linalg.eigh(g / sc)
+            except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
+                u, ev, _ = torch.linalg.svd(g / sc)  # symmetric PSD: the same factorisation
             cache[key] = (ev.clamp_min(0.0) * sc, u)
         ev, u = cache[key]
-        return ev * (tr[c] / tr[owner[c]]), u, ps
+        trc = torch.diagonal(gram[c, :kc, :kc]).sum().clamp_min(1e-300)
+        tro = torch.diagonal(gram[owner[c], :kc, :kc]).sum().clamp_min(1e-300)
+        return ev * (trc / tro), u, ps
 
-    best = []
-    for c in range(nch):
+    def m2lp_of(c, beta, kc):
         nc = nuse[c].to(torch.float64)
-        top = None
-        for beta in slopes.tolist():
-            ev, u, ps = eig_of(c, beta)
-            ct = u.T @ (ps * rhs[c])
-            keep = ev > EIG_RTOL * ev.max().clamp_min(1e-300)
-            scale = ev.mean().clamp_min(1e-300)
-            g, ck = ev[keep], ct[keep]
-            rss0 = (btwb[c] - (ck ** 2 / g).sum()).clamp_min(1e-15 * btwb[c])
-            lams = 10.0 ** grid * scale
-            ll = lams[:, None]
-            q = rss0 + (ck[None] ** 2 * ll / (g[None] * (g[None] + ll))).sum(-1)
-            s2 = q / nc
-            if noise_known:
-                s2 = s2.clamp_min(1.0)
-            m2lp = (nc * torch.log(s2) + q / s2 + torch.log1p(ev[None] / ll).sum(-1)
-                    + (beta - mu) ** 2 / sd ** 2)
-            j = int(torch.argmin(m2lp))
-            if top is None or float(m2lp[j]) < top[0]:
-                top = (float(m2lp[j]), beta, float(lams[j]), float(s2[j]), float(scale))
-        best.append(top)
+        ev, u, ps = eig_of(c, beta, kc)
+        ct = u.T @ (ps * rhs[c, :kc])
+        keep = ev > EIG_RTOL * ev.max().clamp_min(1e-300)
+        scale = ev.mean().clamp_min(1e-300)
+        g, ck = ev[keep], ct[keep]
+        rss0 = (btwb[c] - (ck ** 2 / g).sum()).clamp_min(1e-15 * btwb[c])
+        lams = 10.0 ** grid * scale
+        ll = lams[:, None]
+        q = rss0 + (ck[None] ** 2 * ll / (g[None] * (g[None] + ll))).sum(-1)
+        s2 = q / nc
+        if noise_known:
+            s2 = s2.clamp_min(1.0)
+        m2lp = (nc * torch.log(s2) + q / s2 + torch.log1p(ev[None] / ll).sum(-1)
+                + (beta - mu) ** 2 / sd ** 2)
+        j = int(torch.argmin(m2lp))
+        return (float(m2lp[j]), beta, float(lams[j]), float(s2[j]), float(scale))
+
+    def search(kc):
+        out = []
+        for c in range(nch):
+            if slopes is not None:
+                cand = [m2lp_of(c, bt, kc) for bt in slopes.tolist()]
+            else:  # coarse (step 1) then ±0.5 around the best
+                cand = [m2lp_of(c, bt, kc) for bt in SLOPE_GRID[::2].tolist()]
+                b0 = min(cand)[1]
+                cand += [m2lp_of(c, bt, kc) for bt in (b0 - 0.5, b0 + 0.5)
+                         if float(SLOPE_GRID[0]) <= bt <= float(SLOPE_GRID[-1])]
+            out.append(min(cand))
+        return out, sum(t[0] for t in out)
+
+    lmax_all = int(band.max())
+    cands = sorted({min(int(x), lmax_all) for x in (bandwidths or [lmax_all])})
+    best, tot = None, math.inf
+    chosen = cands[-1]
+    for lc in cands:
+        b_, t_ = search((lc + 1) ** 2)
+        if t_ < tot:
+            best, tot, chosen = b_, t_, lc
+    k = (chosen + 1) ** 2
+    band = band[:k]
+    gram, rhs = gram[:, :k, :k], rhs[:, :k]
+    if halves is not None:
+        halves = (halves[0][:, :, :k, :k], halves[1][:, :, :k])
+    full_design = design
+    if callable(full_design):
+        def design(s_, e_):
+            return full_design(s_, e_)[..., :k]
+    else:
+        design = full_design[..., :k]
 
     coef = torch.zeros(k, nch, dtype=torch.float64, device=dev)
     x0 = torch.zeros_like(coef)
@@ -577,7 +613,7 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     band_sv: list[list[torch.Tensor]] = [[] for _ in range(int(band.max()) + 1)]
     for c in range(nch):
         m2lp, beta, lam, s2, scale = best[c]
-        ev, u, ps = eig_of(c, beta)
+        ev, u, ps = eig_of(c, beta, k)
         ct = u.T @ (ps * rhs[c])
         keep = ev > EIG_RTOL * ev.max().clamp_min(1e-300)
         pu = ps[:, None] * u
