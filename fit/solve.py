@@ -577,10 +577,11 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     cands = sorted({min(int(x), lmax_all) for x in (bandwidths or [lmax_all])})
     best, tot = None, math.inf
     chosen = cands[-1]
-    for lc in cands:
+    for lc in cands:  # ascending; stop at the first bandwidth the evidence does not prefer
         b_, t_ = search((lc + 1) ** 2)
-        if t_ < tot:
-            best, tot, chosen = b_, t_, lc
+        if t_ >= tot:
+            break
+        best, tot, chosen = b_, t_, lc
     k = (chosen + 1) ** 2
     band = band[:k]
     gram, rhs = gram[:, :k, :k], rhs[:, :k]
