@@ -90,9 +90,10 @@ def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> in
     spectrum, ``|f_l| sqrt(2l+1)/(l+1)`` (``f_l`` the larger of the diffuse and specular
     filters times their scales; slope 2 of :data:`brdfcap.fit.solve.SLOPE_PRIOR`), stays below
     :data:`INTERNAL_REL` of the DC's (R&H 2001 §3: ``B_lm = Λ_l ρ̂_l L_lm``, so bands the filter
-    kills cannot alias into the data), capped at :data:`INTERNAL_LMAX_CAP` and at
-    ``sqrt(n_samples)``. :func:`fit_lighting` also tries larger bandwidths up to the cap and
-    keeps the one of highest evidence (a real probe's spectrum is flatter than slope 2).
+    kills cannot alias into the data), capped at :data:`INTERNAL_LMAX_CAP` and where the
+    unknowns would exceed a quarter of the samples (``(L+1)² ≤ N/4``). :func:`fit_lighting`
+    also tries larger bandwidths up to the cap and keeps the one of highest evidence (a real
+    probe's spectrum is flatter than slope 2).
     """
     top = INTERNAL_LMAX_CAP
     fd = diffuse_filter(top) * float(spec.kd.abs().max()) if spec.kd.numel() else 0.0
@@ -104,7 +105,7 @@ def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> in
     amp = f * (2 * l + 1).sqrt() / (l + 1)
     big = torch.nonzero(amp >= INTERNAL_REL * amp.max().clamp_min(1e-300)).flatten()
     carried = int(big.max()) if big.numel() else 0
-    cap = top if n_samples is None else max(lmax, min(top, int(math.isqrt(max(n_samples, 1)))))
+    cap = top if n_samples is None else max(lmax, min(top, math.isqrt(max(n_samples, 1)) // 2 - 1))
     return max(lmax, min(max(lmax + 2, carried), cap))
 
 
@@ -259,7 +260,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         cands = [max(int(lmax_internal), lrep)]
     else:
         l0 = internal_lmax(spec, lrep, nsamp)
-        cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1))))
+        cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
         cands = sorted({max(l0, lrep), max((l0 + cap) // 2, lrep), cap}) if not auto else [cap]
     lint = cands[-1]
     band = band_of_index(lint).to(n.device)

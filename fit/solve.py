@@ -400,45 +400,39 @@ class BayesExtras:
 def _accumulate(design, b, w, cs, chunk, split):
     """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K) and their per-half copies."""
     n, nch = b.shape
-    gram = rhs = None
-    halves = None
+    gram = rhs = halves = None
     shared_w = all(torch.equal(w[:, 0], w[:, c]) for c in range(1, nch))
     for s, e, a in _design_chunks(design, n, chunk):
         a = a.to(torch.float64)
         if gram is None:
             k = a.shape[-1]
-            gram = torch.zeros(nch, k, k, dtype=torch.float64, device=b.device)
-            rhs = torch.zeros(nch, k, dtype=torch.float64, device=b.device)
-            if split is not None:
-                halves = (torch.zeros(2, nch, k, k, dtype=torch.float64, device=b.device),
-                          torch.zeros(2, nch, k, dtype=torch.float64, device=b.device))
-        parts = [(None, w[s:e])] if split is None else [
-            (h, w[s:e] * (split[s:e] == h)[:, None]) for h in (0, 1)]
-        for h, ws in parts:
-            if a.ndim == 2 and shared_w:
-                aw = a * ws[:, :1]
-                g1, r1 = aw.T @ a, aw.T @ b[s:e]
+            halves = (torch.zeros(2, nch, k, k, dtype=torch.float64, device=b.device),
+                      torch.zeros(2, nch, k, dtype=torch.float64, device=b.device))
+        # each half from its own rows (one product per row in all), the total is their sum
+        hs = split[s:e] if split is not None else torch.zeros(e - s, dtype=torch.long,
+                                                             device=b.device)
+        for h in (0, 1):
+            rows = hs == h
+            if not bool(rows.any()):
+                continue
+            ah, wh, bh = a[rows], w[s:e][rows], b[s:e][rows]
+            if ah.ndim == 2 and shared_w:
+                aw = ah * wh[:, :1]
+                g1, r1 = aw.T @ ah, aw.T @ bh
                 for c in range(nch):
                     sc = 1.0 if cs is None else cs[c]
-                    gg, rr = g1 * sc * sc, r1[:, c] * sc
-                    gram[c] += gg
-                    rhs[c] += rr
-                    if h is not None:
-                        halves[0][h, c] += gg
-                        halves[1][h, c] += rr
+                    halves[0][h, c] += g1 * sc * sc
+                    halves[1][h, c] += r1[:, c] * sc
                 continue
             for c in range(nch):
-                ac = a if a.ndim == 2 else a[:, c, :]
+                ac = ah if ah.ndim == 2 else ah[:, c, :]
                 if cs is not None:
                     ac = ac * cs[c]
-                awc = ac * ws[:, c:c + 1]
-                gg, rr = awc.T @ ac, awc.T @ b[s:e, c]
-                gram[c] += gg
-                rhs[c] += rr
-                if h is not None:
-                    halves[0][h, c] += gg
-                    halves[1][h, c] += rr
-    return gram, rhs, halves
+                awc = ac * wh[:, c:c + 1]
+                halves[0][h, c] += awc.T @ ac
+                halves[1][h, c] += awc.T @ bh[:, c]
+    gram, rhs = halves[0].sum(0), halves[1].sum(0)
+    return gram, rhs, halves if split is not None else None
 
 
 def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torch.Tensor,
