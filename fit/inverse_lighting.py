@@ -282,16 +282,17 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     filt = _band_filter(spec, lint)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)
-    rows_all, _, _ = band_statistics_bayes(full, filt, eps)
+    rows_all = band_statistics_bayes(full, filt, eps)[0]
     suggested = suggest_lmax(rows_all)
     if auto:
         lrep = max(suggested, 0)
     k = (lrep + 1) ** 2
     sol = restrict(full, k)
-    rows, ill, band_det = band_statistics_bayes(sol, filt[: lrep + 1], eps)
+    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps)
     adequacy = model_adequacy(full, b, w, noise_known=noise_known, view=view)
     widen2 = adequacy["widen"] ** 2
-    cov = sol.covariance * widen2
+    s_k = infl.to(sol.band.device)[sol.band].sqrt().T  # (C, K) split-half (Birge) widening
+    cov = sol.covariance * widen2 * s_k[:, :, None] * s_k[:, None, :]
     post_se = torch.diagonal(cov, dim1=-2, dim2=-1).T.sqrt()  # (K, C)
     det = sol.determined & band_det.to(sol.band.device)[sol.band]
     if not adequacy["adequate"] and adequacy["widen"] > 1.0:

@@ -123,7 +123,8 @@ class AlbedoFit:
 def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax: int,
                             variance: torch.Tensor | None = None,
                             albedo: torch.Tensor | None = None,
-                            noise_model=None, chunk: int = 32768, rule: str = "gcv") -> SHFit:
+                            noise_model=None, chunk: int = 32768, rule: str = "gcv",
+                            view: torch.Tensor | None = None) -> SHFit:
     """Recover SH lighting ``L_lm`` (per channel) from Lambertian pixels by weighted LS.
 
     Thin wrapper of :func:`brdfcap.fit.inverse_lighting.fit_lighting` with a Lambertian BRDF
@@ -147,7 +148,9 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
         When given, the variance is re-evaluated at the *fitted* signal and the fit repeated
         once (iteratively reweighted LS).
     rule : str
-        Tikhonov weight rule (:mod:`brdfcap.fit.solve`).
+        Tikhonov weight rule (:mod:`brdfcap.fit.solve`; used only by method "tikhonov").
+    view : torch.Tensor, optional
+        ``(N,)`` view index per sample (split-half reproducibility, per-view residuals).
 
     Returns
     -------
@@ -170,7 +173,8 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
         scale_fixing = "albedo known from capture.toml [material].albedo"
     spec = BRDFSpec("lambertian", kd=kd)
     return fit_lighting(normals, radiance, lmax, brdf=spec, variance=variance, rule=rule,
-                        noise_model=noise_model, scale_fixing=scale_fixing, chunk=chunk)
+                        noise_model=noise_model, scale_fixing=scale_fixing, chunk=chunk,
+                        view=view)
 
 
 def fit_albedo_directional(normals: torch.Tensor, wi: torch.Tensor, light_radiance: torch.Tensor,
