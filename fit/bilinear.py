@@ -81,7 +81,7 @@ class BilinearFit:
         L = self.lighting.coefficients
         lmax = self.lighting.lmax
         band = band_of_index(lmax)
-        amp = torch.stack([L[band == l].pow(2).mean(0).sqrt() for l in range(lmax + 1)])
+        amp = torch.stack([L[band == l].pow(2).sum(0).sqrt() for l in range(lmax + 1)])
         rel = (amp / L[0].abs().clamp_min(1e-300)).median(-1).values
         eps = self.lighting.noise_level
         below = torch.nonzero(rel < eps)
@@ -90,7 +90,7 @@ class BilinearFit:
                         "predicted": {"model": "lighting spectrum", "eps": eps,
                                       "first_ill_band": int(below[0]) if below.numel() else None,
                                       "lstar": None,
-                                      "formula": "first l with sqrt(mean_m L_lm^2)/|L_00| < eps "
+                                      "formula": "first l with ||L_l||/|L_00| < eps (band norm) "
                                                  "(bands beyond the lighting's lmax are never "
                                                  "excited)"}}
         return {"lighting": lighting_json(self.lighting),
@@ -335,7 +335,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     sol_l.determined = sol_l.determined & ~amb_mask[:, None]
     sol_l.stderr_unregularised = torch.where(sol_l.determined, se_l,
                                              torch.full_like(se_l, math.inf))
-    sol_l.stderr = torch.where(sol_l.determined, torch.maximum(sol_l.stderr, 0 * se_l),
+    # the joint (unconditional) error bounds the conditional, regularised one from below
+    sol_l.stderr = torch.where(sol_l.determined, torch.maximum(sol_l.stderr, se_l),
                                torch.full_like(se_l, math.inf))
     rows, ill = band_statistics(sol_l)
     eps = noise_level(sol_l)

@@ -7,7 +7,7 @@ channel. Unknowns per channel: ``[Â_0 … Â_lmax, kd]``, solved by
 :func:`brdfcap.fit.solve.solve_wls` (same Tikhonov rule and uncertainty as the lighting).
 R&H's well-posedness result appears directly in the conditioning: the column of band ``l`` is
 ``Σ_m L_lm Y_lm(r)``, so bands where the lighting has no energy are *not determined*, and the
-predicted ``l*`` is the first band whose lighting amplitude ``sqrt(mean_m L_lm²)/|L_00|`` falls
+predicted ``l*`` is the first band whose lighting band norm ``sqrt(Σ_m L_lm²)/|L_00|`` falls
 below the noise level ``ε``.
 
 Known lighting may be SH coefficients, a light probe file (lat-long HDR, projected by
@@ -146,14 +146,16 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         band=bands[: lmax + 1], band_singular=sol.band_singular)
     rows, ill = band_statistics(sol_f)
     eps = noise_level(sol_f)
-    amp = torch.stack([Lp[band_l == l].pow(2).mean(0).sqrt() for l in range(lmax + 1)])
+    # ρ̂_l is seen through all 2l+1 coefficients of band l: its information is the band norm
+    # ||L_l||² = Σ_m L_lm² (not the mean over m, which is √(2l+1) too small; issue 12)
+    amp = torch.stack([Lp[band_l == l].pow(2).sum(0).sqrt() for l in range(lmax + 1)])
     rel = (amp / Lp[0].abs().clamp_min(1e-300)).median(-1).values  # (lmax+1,)
     below = torch.nonzero(rel < eps)
     pred_l = int(below[0]) if below.numel() else None
     prediction = {"model": "lighting spectrum", "eps": eps, "first_ill_band": pred_l,
                   "lstar": float(pred_l) if pred_l is not None else math.inf,
-                  "formula": "first l with sqrt(mean_m L_lm^2)/|L_00| < eps (R&H 2001: BRDF "
-                             "recovery needs lighting energy at that frequency)"}
+                  "formula": "first l with ||L_l||/|L_00| < eps, ||L_l||^2 = sum_m L_lm^2 (R&H "
+                             "2001: BRDF recovery needs lighting energy at that frequency)"}
     filt = sol.coefficients[: lmax + 1]
     checks = {"filter_dc_le_1": bool((filt[0] <= 1 + 3 * sol.stderr[0].clamp_max(1e300)).all()),
               "note": "Â_0 is the directional albedo of the specular lobe at normal exitance: "
