@@ -256,20 +256,30 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     auto = lmax == "auto"
     lrep = 0 if auto else int(lmax)
     nsamp = int(((w > 0).any(-1)).sum())
-    if lmax_internal is not None:
-        cands = [max(int(lmax_internal), lrep)]
-    else:
-        l0 = internal_lmax(spec, lrep, nsamp)
-        cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
-        cands = sorted({max(l0, lrep), max((l0 + cap) // 2, lrep), cap}) if not auto else [cap]
-    lint = cands[-1]
-    band = band_of_index(lint).to(n.device)
-    design, cscale = lighting_design(spec, n, r, lint)
     split = _split_halves(n.shape[0], view, good)
-    full = solve_bayes(design, b, w, band, noise_known=noise_known, noise_source=src,
-                       chunk=chunk, channel_scale=cscale, split=split, bandwidths=cands)
+
+    def solve_to(cands):
+        band = band_of_index(cands[-1]).to(n.device)
+        design, cscale = lighting_design(spec, n, r, cands[-1])
+        return solve_bayes(design, b, w, band, noise_known=noise_known, noise_source=src,
+                           chunk=chunk, channel_scale=cscale, split=split,
+                           bandwidths=cands), cscale
+
+    cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
+    if lmax_internal is not None:
+        full, cscale = solve_to([max(int(lmax_internal), lrep)])
+    else:
+        # the filter's bandwidth first; larger ones (evidence-chosen) only when its residual
+        # is not white noise — the data then carry more than a slope-2 spectrum would
+        l0 = cap if auto else max(internal_lmax(spec, lrep, nsamp), lrep)
+        full, cscale = solve_to([l0])
+        first = model_adequacy(full, b, w, noise_known=noise_known, view=view)
+        if l0 < cap and (first["likely_causes"] or not first["adequate"]):
+            full, cscale = solve_to(sorted({l0, (l0 + cap) // 2, cap}))
     lint = int(full.band.max())
     cands = [lint]
+    band = band_of_index(lint).to(n.device)
+    design, _ = lighting_design(spec, n, r, lint)
     if noise_model is not None and getattr(noise_model, "is_known", False):
         pred = b - full.bayes.residual
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
