@@ -236,3 +236,31 @@ def test_suggest_lmax_and_auto():
     fit, _, _ = _single_view_distant_light("auto", torch.Generator().manual_seed(7), n=2000)
     assert fit.lmax == fit.suggested_lmax
     assert all(r["determined"] for r in fit.bands if r["observable"])
+
+
+@needs_probes
+@pytest.mark.slow
+def test_glossy_sphere_reference_renderer_no_determined_band_off():
+    """Phong s = 64 under the Grace probe, rendered by the independent reference renderer
+    (``capture.reference.render_environment``: RQMC over the true lobe, ~3 min), lighting
+    to lmax 8 with the BRDF known: no band called determined is off by more than 10% of its
+    norm (measured: all bands within 2.4%), and the adequacy check reports that the model
+    does not explain the data at 1% noise (the lobe carries bands above the internal
+    bandwidth; issue 12 measured "every band determined, 57% residual" before).
+    """
+    from brdfcap.capture.reference import render_environment
+
+    img, _, _ = _probe()
+    g = torch.Generator().manual_seed(0)
+    nrm = unit(1500, g)
+    wo = torch.nn.functional.normalize(
+        2 * nrm + 0.3 * torch.randn(1500, 3, generator=g, dtype=torch.float64), dim=-1)
+    spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=64.0)
+    b = render_environment(spec, nrm, wo, img, rel_tol=1e-3)
+    r = 2 * (nrm * wo).sum(-1, keepdim=True) * nrm - wo
+    sd = 0.01 * float(b.abs().mean())
+    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    f = fit_lighting(nrm, bn, 8, spec, reflected=r, variance=torch.full_like(b, sd ** 2))
+    err = _band_errors(f.coefficients, project_envmap(img, 8, quadrature="pixel"), 8)
+    assert all(err[r_["l"]] <= 0.10 for r_ in f.bands if r_["determined"]), (err, f.bands)
+    assert not f.adequacy["adequate"] and f.adequacy["likely_causes"]
