@@ -72,6 +72,7 @@ class BilinearFit:
     history: list[float]
     prediction: torch.Tensor  # (N, C)
     ambiguities: list[dict] = field(default_factory=list)
+    gauge_invariant: dict = field(default_factory=dict)  # _gauge_invariant (issue 12)
 
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
@@ -81,7 +82,7 @@ class BilinearFit:
         L = self.lighting.coefficients
         lmax = self.lighting.lmax
         band = band_of_index(lmax)
-        amp = torch.stack([L[band == l].pow(2).mean(0).sqrt() for l in range(lmax + 1)])
+        amp = torch.stack([L[band == l].pow(2).sum(0).sqrt() for l in range(lmax + 1)])
         rel = (amp / L[0].abs().clamp_min(1e-300)).median(-1).values
         eps = self.lighting.noise_level
         below = torch.nonzero(rel < eps)
@@ -90,7 +91,7 @@ class BilinearFit:
                         "predicted": {"model": "lighting spectrum", "eps": eps,
                                       "first_ill_band": int(below[0]) if below.numel() else None,
                                       "lstar": None,
-                                      "formula": "first l with sqrt(mean_m L_lm^2)/|L_00| < eps "
+                                      "formula": "first l with ||L_l||/|L_00| < eps (band norm) "
                                                  "(bands beyond the lighting's lmax are never "
                                                  "excited)"}}
         return {"lighting": lighting_json(self.lighting),
@@ -105,7 +106,17 @@ class BilinearFit:
                                              "versa)"},
                 "factorisation": {"iterations": self.iterations, "converged": self.converged,
                                   "chi2_history": self.history[-10:]},
-                "ambiguities": self.ambiguities, "conditioning": cond}
+                "ambiguities": self.ambiguities, "conditioning": cond,
+                "gauge_invariant": self._gauge_json()}
+
+    def _gauge_json(self) -> dict:
+        gi = self.gauge_invariant
+        if not gi:
+            return {}
+        return {"definition": gi["definition"], "quantities": gi["quantities"],
+                "stderr": [x if math.isfinite(x) else None for x in gi["stderr"].tolist()],
+                "determined": gi["determined"].tolist(),
+                "touched_by_null_direction": gi["touched_by_null_direction"]}
 
     def summary(self) -> list[str]:
         """Report lines."""
@@ -337,7 +348,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     sol_l.determined = sol_l.determined & ~amb_mask[:, None]
     sol_l.stderr_unregularised = torch.where(sol_l.determined, se_l,
                                              torch.full_like(se_l, math.inf))
-    sol_l.stderr = torch.where(sol_l.determined, torch.maximum(sol_l.stderr, 0 * se_l),
+    # the joint (unconditional) error bounds the conditional, regularised one from below
+    sol_l.stderr = torch.where(sol_l.determined, torch.maximum(sol_l.stderr, se_l),
                                torch.full_like(se_l, math.inf))
     rows, ill = band_statistics(sol_l)
     eps = noise_level(sol_l)
@@ -431,7 +443,69 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                        f"(flagged per coefficient)" if ill is not None else
                        "none within lmax"},
     ]
+    nulls = [dsc * u[:, j] for j in torch.nonzero(null).flatten().tolist()]
+    gi = _gauge_invariant(sol_l.coefficients, f, kd, band, lmax, lb, hinv * sig2, nulls)
     return BilinearFit(lighting=lt, kd=kd, kd_stderr=kd_se, filter=f, filter_stderr=f_se,
                        filter_bands=f_rows, filter_ill_conditioned_from_l=f_ill,
                        iterations=it, converged=converged, history=history, prediction=pred,
-                       ambiguities=amb)
+                       ambiguities=amb, gauge_invariant=gi)
+
+
+def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls) -> dict:
+    r"""Compute what the images determine whatever the gauge, with its covariance (issue 12).
+
+    Products (R&H 2001 §5: through the specular term only ``f_l L_lm`` is seen; through the
+    diffuse term ``kd Â_l L_lm``, eq. 8): ``specular`` ``f_l L_lm,c`` (``1 ≤ l ≤ min(lmax,
+    brdf_lmax)``), ``diffuse`` ``kd_c Â_l/π L_lm,c`` (``l ≥ 1``, ``Â_l ≠ 0``) and the total DC
+    ``(kd_c + f_0) L_00,c``. Covariance by the delta method ``J (σ² H⁺) Jᵀ`` with the joint
+    Gauss–Newton ``H`` (parameters: lighting channel-major, ``f_1..f_lb``, ``kd``). A product
+    whose gradient is not orthogonal to a null direction of ``H`` (|J·v| > 1e-6 |J||v|) is
+    *touched* by that ambiguity: it is not determined (its variance along ``v`` is unbounded) and
+    the ambiguity's index is listed.
+    """
+    f64 = torch.float64
+    nch = L.shape[1]
+    k = L.shape[0]
+    d = nch * k + lb + nch
+    a = diffuse_filter(lmax)
+    rows, labels = [], []
+    for c in range(nch):
+        lc = L[:, c]
+        g = torch.zeros(d, dtype=f64)
+        g[c * k] = float(kd[c]) + float(f[0])
+        g[nch * k + lb + c] = float(lc[0])
+        rows.append(g)
+        labels.append(("dc", 0, 0, c, float(lc[0]) * (float(kd[c]) + float(f[0]))))
+        for i in range(1, k):
+            l = int(band[i])
+            m = i - l * (l + 1)
+            if l <= lb:
+                g = torch.zeros(d, dtype=f64)
+                g[c * k + i] = float(f[l])
+                g[nch * k + l - 1] = float(lc[i])
+                rows.append(g)
+                labels.append(("specular", l, m, c, float(f[l]) * float(lc[i])))
+            if float(a[l]) != 0.0:
+                g = torch.zeros(d, dtype=f64)
+                g[c * k + i] = float(kd[c]) * float(a[l])
+                g[nch * k + lb + c] = float(a[l]) * float(lc[i])
+                rows.append(g)
+                labels.append(("diffuse", l, m, c, float(kd[c]) * float(a[l]) * float(lc[i])))
+    jac = torch.stack(rows)
+    pcov = jac @ cov @ jac.T
+    touched = []
+    for g in jac:
+        t = [j for j, v in enumerate(nulls)
+             if abs(float(g @ v)) > 1e-6 * float(g.norm() * v.norm()) + 1e-300]
+        touched.append(t)
+    se = torch.diagonal(pcov).clamp_min(0.0).sqrt()
+    det = [not t for t in touched]
+    se = torch.where(torch.tensor(det), se, torch.full_like(se, math.inf))
+    return {"definition": "products the images determine whatever the gauge: specular f_l L_lm "
+                          "(l >= 1), diffuse kd A_l/pi L_lm (A_l != 0), total DC (kd + f_0) L_00; "
+                          "covariance J (sigma^2 H^+) J^T of the joint Gauss-Newton problem",
+            "quantities": [{"kind": kd_, "l": l, "m": m, "channel": c, "value": v}
+                           for kd_, l, m, c, v in labels],
+            "value": torch.tensor([x[4] for x in labels], dtype=f64), "stderr": se,
+            "determined": torch.tensor(det), "touched_by_null_direction": touched,
+            "covariance": pcov}

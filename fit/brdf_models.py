@@ -81,6 +81,20 @@ class BRDFSpec:
         return d
 
     @property
+    def brdf(self):
+        """The registered model instance (:mod:`brdfcap.fit.brdf`) with these parameters."""
+        from .brdf import make_brdf
+
+        kw = {"kd": self.kd}
+        if self.model in ("phong", "mirror"):
+            kw["ks"] = self.ks
+        if self.model == "phong":
+            kw["s"] = self.s
+        if self.model in ("microfacet", "beckmann", "ggx"):
+            kw.update(f0=self.f0, sigma=self.sigma)
+        return make_brdf(self.model, **kw)
+
+    @property
     def specular_scale(self) -> torch.Tensor:
         """``(C,)`` scale of the specular filter (``ks``, or ``F0`` for microfacet)."""
         return self.f0 if self.model == "microfacet" else self.ks

@@ -32,14 +32,19 @@ import math
 
 import torch
 
-from .solve import RESOLUTION_LIMIT, LinearSolution
+from .filters import lambertian_filter
+from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
+           "BAYES_DEFINITION", "PRECISION_LIMIT", "REPRODUCIBILITY_LEVEL",
+           "band_statistics_bayes", "model_adequacy", "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
 
 #: Criterion 2 threshold (see module doc).
 REL_STDERR_LIMIT = 1.0
+#: Highest band searched by the Lambertian even-band prediction.
+LSTAR_SEARCH_LMAX = 64
 
 ILL_CONDITIONING_DEFINITION = (
     f"Band l is ill-conditioned when (1) some coefficient of the band is not resolved by the "
@@ -140,8 +145,19 @@ def predicted_lstar(model: str, eps: float, **params) -> dict:
         (int: ceil(l*), or 3 for Lambertian, None for mirror), "formula"}``.
     """
     if model == "lambertian":
-        return {"model": model, "eps": eps, "lstar": 3.0, "first_ill_band": 3,
-                "formula": "odd l > 1 vanish (R&H 2001 eq. 8): ill-conditioned beyond l = 2"}
+        # even bands: |Â_l|/Â_0 falls below ε (R&H 2001 eq. 8, exact values, not divided by the
+        # zeros); odd bands > 1 have Â_l = 0 exactly and are reported as unobservable.
+        f = lambertian_filter(LSTAR_SEARCH_LMAX).abs()
+        rel = f / f[0]
+        below = [l for l in range(LSTAR_SEARCH_LMAX + 1) if 0 < float(rel[l]) < eps]
+        l_even = below[0] if below else None
+        return {"model": model, "eps": eps,
+                "lstar": float(l_even) if l_even is not None else math.inf,
+                "first_ill_band": 3 if l_even is None else min(3, l_even),
+                "first_ill_observable_band": l_even,
+                "unobservable_bands": "odd l >= 3 (A_l = 0 exactly, R&H 2001 eq. 8)",
+                "formula": "odd l >= 3 unobservable (A_l = 0, R&H 2001 eq. 8); even bands "
+                           "ill-conditioned from the first l with |A_l|/A_0 < eps"}
     if model == "phong":
         ls = predicted_lstar_phong(float(params["s"]), eps)
         f = "l* = sqrt(2 s ln(1/eps)) (seed eq. 5)"
@@ -156,3 +172,267 @@ def predicted_lstar(model: str, eps: float, **params) -> dict:
                          "mirror")
     return {"model": model, "eps": eps, "lstar": ls,
             "first_ill_band": int(math.ceil(ls)) if math.isfinite(ls) else None, "formula": f}
+
+
+# ---------------------------------------------------------------------------------------------
+# What the data resolve (issue 12): the definition used with fit.solve.solve_bayes
+# ---------------------------------------------------------------------------------------------
+
+#: A band is determined only when its posterior s.d. (root of the summed variances of its
+#: coefficients) is at most this fraction of its estimated norm: 95% of determined bands are
+#: then within ~10% of the truth in band norm.
+PRECISION_LIMIT = 0.05
+#: χ²/ν above which (and 3 s.d. above 1) the model is said not to explain the data; between,
+#: a small excess only inflates the intervals (σ² = χ²/ν).
+CHI2_INADEQUATE = 1.5
+#: Two disjoint halves of the samples disagree "beyond their stated errors" on a band when the
+#: χ² of their difference exceeds this quantile of χ²(2l+1).
+REPRODUCIBILITY_LEVEL = 0.999
+
+BAYES_DEFINITION = (
+    f"Band l of a quantity is determined when (1) the BRDF filter does not vanish there "
+    f"(Ramamoorthi & Hanrahan 2001 eq. 8: Lambertian odd l >= 3 are unobservable), (2) the data "
+    f"resolve every coefficient of the band: posterior variance <= {RATIO_LIMIT:g} x prior "
+    f"variance (power-law prior on the spectrum, scale and slope by marginal likelihood; the "
+    f"band is compared with its own expected power, never with the DC term), and (3) the band "
+    f"norm is known to {100 * PRECISION_LIMIT:g}% (1 s.d.) after a model-free check: two "
+    f"disjoint halves of the samples (alternate views) are fitted and, where they disagree "
+    f"beyond their stated errors (chi2 of the difference above its "
+    f"{100 * REPRODUCIBILITY_LEVEL:g}% quantile), the band's errors are widened by the "
+    f"disagreement (Birge ratio) before (3) is checked. ill_conditioned_from_l is the first "
+    f"band that is not determined; the analytic prediction of Ramamoorthi & Hanrahan (|filter_l| / "
+    f"|filter_0| < eps) is shown next to it."
+)
+
+
+def _chi2_quantile(q: float, dof: int) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(q, dof))
+
+
+def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
+                          eps: float | None = None
+                          ) -> tuple[list[dict], int | None, torch.Tensor, torch.Tensor]:
+    """Per-band rows of what the data resolve, for a solution of :func:`solve_bayes`.
+
+    Parameters
+    ----------
+    sol : LinearSolution
+        From :func:`brdfcap.fit.solve.solve_bayes`, possibly sliced by
+        :func:`brdfcap.fit.solve.restrict`.
+    filt : torch.Tensor, optional
+        ``(lmax+1,)`` or ``(lmax+1, C)`` BRDF filter ``Λ_l ρ̂_l`` of the quantity (bands where it
+        is exactly 0 are *unobservable*) — also gives the analytic column ``filter_rel``.
+    eps : float, optional
+        Noise level for the analytic per-band prediction ``|f_l|/|f_0| >= eps`` (R&H 2001 §5).
+
+    Returns
+    -------
+    tuple
+        ``(rows, ill_conditioned_from_l, band_determined (lmax+1, C) bool, inflation
+        (lmax+1, C))``; ``inflation`` multiplies the band's variances (Birge ratio of the split
+        halves' disagreement, 1 when they agree; Birge 1932, Phys. Rev. 40, 207). Row keys: ``l``,
+        ``n_coefficients``, ``observable``, ``filter_rel``, ``predicted_determined``,
+        ``posterior_to_prior`` (worst channel), ``relative_precision`` (worst channel),
+        ``reproducibility_chi2`` and ``reproducibility_limit`` (worst channel; ``None``
+        without a split), ``reproducible``, ``widened_by``, ``determined``,
+        ``ill_conditioned``, ``reason``, and the design statistics of :func:`band_statistics`
+        (``singular_max``, ``singular_min``, ``condition``, ``determined_fraction``, ``median_snr``,
+        ``resolution``, ``median_rel_stderr`` = relative precision).
+    """
+    bx = sol.bayes
+    x = sol.coefficients
+    nch = x.shape[1]
+    lmax = int(sol.band.max())
+    post, prior = bx.posterior_variance, bx.prior_variance
+    ratio_c = post / prior.clamp_min(1e-300)
+    f = None
+    if filt is not None:
+        f = filt.to(torch.float64).reshape(filt.shape[0], -1)[: lmax + 1].abs()
+        f = f.expand(-1, nch) if f.shape[1] == 1 else f
+    rows, first = [], None
+    band_det = torch.zeros(lmax + 1, nch, dtype=torch.bool)
+    infl = torch.ones(lmax + 1, nch, dtype=torch.float64)
+    for l in range(lmax + 1):
+        sel = sol.band == l
+        nl = int(sel.sum())
+        observable = True if f is None else bool((f[l] > 0).all())
+        ratio = post[sel].sum(0) / prior[sel].sum(0).clamp_min(1e-300)  # (C,)
+        resolved = (ratio_c[sel] <= RATIO_LIMIT).all(0)
+        norm = x[sel].norm(dim=0)
+        prec = torch.where(norm > 0, post[sel].sum(0).sqrt() / norm.clamp_min(1e-300),
+                           torch.full_like(norm, math.inf))
+        repro_ok = torch.ones(nch, dtype=torch.bool)
+        z2 = lim = None
+        if bx.split_coefficients is not None:
+            lim = _chi2_quantile(REPRODUCIBILITY_LEVEL, nl)
+            d = bx.split_coefficients[0][sel] - bx.split_coefficients[1][sel]  # (nl, C)
+            idx = torch.nonzero(sel).flatten()
+            z2s = []
+            for c in range(nch):
+                cv = (bx.split_covariance[0, c] + bx.split_covariance[1, c])[idx][:, idx]
+                cv = 0.5 * (cv + cv.T)
+                z2s.append(float(d[:, c] @ torch.linalg.lstsq(cv, d[:, c:c + 1]).solution[:, 0]))
+            z2t = torch.tensor(z2s, dtype=torch.float64)
+            repro_ok = z2t <= lim
+            z2 = float(z2t.max())
+            # Birge ratio: halves that disagree beyond their errors widen the band's errors
+            infl[l] = torch.where(repro_ok, torch.ones_like(z2t), (z2t / nl).clamp_min(1.0))
+        prec = prec * infl[l].sqrt()
+        det = resolved & (prec <= PRECISION_LIMIT) & observable
+        band_det[l] = det
+        reasons = []
+        if not observable:
+            reasons.append("unobservable: the BRDF filter is exactly 0 in this band")
+        elif not bool(resolved.all()):
+            reasons.append(f"not resolved: posterior/prior variance {float(ratio.max()):.2g} "
+                           f"(some coefficient above {RATIO_LIMIT:g})")
+        elif not bool((prec <= PRECISION_LIMIT).all()):
+            reasons.append(f"imprecise: band norm known to {100 * float(prec.max()):.3g}% "
+                           f"(> {100 * PRECISION_LIMIT:g}%)")
+        if not bool(repro_ok.all()):
+            reasons.append(f"halves differ by chi2 {z2:.3g} > {lim:.3g} ({nl} dof): errors "
+                           f"widened {math.sqrt(float(infl[l].max())):.3g}x")
+        sv = sol.band_singular[l] if l < len(sol.band_singular) else torch.zeros(1)
+        smax, smin = float(sv.max()), float(sv.min())
+        frel = None if f is None else float((f[l] / f[0].clamp_min(1e-300)).max())
+        se = sol.stderr[sel]
+        rows.append({
+            "l": l, "n_coefficients": nl, "observable": observable,
+            "filter_rel": frel,
+            "predicted_determined": None if frel is None or eps is None else frel >= eps,
+            "posterior_to_prior": float(ratio.max()),
+            "relative_precision": float(prec.max()),
+            "reproducibility_chi2": z2, "reproducibility_limit": lim,
+            "reproducible": bool(repro_ok.all()),
+            "widened_by": math.sqrt(float(infl[l].max())),
+            "determined": bool(det.all()), "ill_conditioned": not bool(det.all()),
+            "reason": "; ".join(["determined"] * bool(det.all()) + reasons),
+            "singular_max": smax, "singular_min": smin,
+            "condition": smax / smin if smin > 0 else math.inf,
+            "determined_fraction": float(det.double().mean()),
+            "median_rel_stderr": float(prec.max()),
+            "median_snr": float(torch.where(torch.isfinite(se), x[sel].abs() / se,
+                                            torch.zeros_like(se)).median()),
+            "resolution": float(sol.resolution[sel].median()),
+        })
+        if not bool(det.all()) and first is None:
+            first = l
+    return rows, first, band_det, infl
+
+
+def suggest_lmax(rows: list[dict]) -> int:
+    """Highest band up to which every *observable* band is determined (``-1`` if not even l = 0).
+
+    Unobservable bands (a filter exactly 0, e.g. Lambertian odd l >= 3) do not stop the
+    suggestion: their coefficients are reported as unobservable whatever lmax is asked for.
+    """
+    best = -1
+    for r in rows:
+        if not r.get("observable", True):
+            continue
+        if not r["determined"]:
+            break
+        best = r["l"]
+    return best
+
+
+def _lag1(res: torch.Tensor, group: torch.Tensor, used: torch.Tensor) -> tuple[float, int]:
+    """Lag-1 autocorrelation of residuals in sample (scan) order within each group."""
+    pair = used[1:] & used[:-1] & (group[1:] == group[:-1])
+    if int(pair.sum()) < 3:
+        return math.nan, 0
+    r = res - res[used].mean()
+    num = (r[1:] * r[:-1])[pair].sum()
+    den = 0.5 * ((r[1:] ** 2)[pair].sum() + (r[:-1] ** 2)[pair].sum())
+    return float(num / den.clamp_min(1e-300)), int(pair.sum())
+
+
+def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noise_known: bool,
+                   view: torch.Tensor | None = None) -> dict:
+    """Whether the fitted model explains the data, stated in plain language.
+
+    With a noise model: χ²/ν per channel (``ν = N − tr H``) and its distance from 1 in units of
+    ``sqrt(2/ν)``. Without one no χ² is presented (it would be 1 by construction); in both cases
+    the residual *structure*: lag-1 autocorrelation of the residuals in scan order (pixels are
+    neighbours; white noise gives ~0, unmodelled smooth effects ~1), the residual RMS per view
+    relative to the signal, and the residual skewness (positive: unmodelled highlights;
+    negative: unmodelled shadows). When the residual is structured, intervals are widened by
+    the AR(1) variance-inflation factor ``sqrt((1+ρ)/(1−ρ))`` (``widen`` in the result).
+
+    Returns
+    -------
+    dict
+        ``adequate`` (bool), ``verdict`` (one sentence), ``likely_causes`` (list), ``chi2_reduced``
+        (per channel, or ``None`` without a noise model), ``chi2_sigma``, ``residual_rel_rms``,
+        ``residual_autocorrelation``, ``residual_skewness``, ``per_view`` and ``widen``.
+    """
+    bx = sol.bayes
+    res = bx.weighted_residual
+    used = (w > 0).all(-1) & torch.isfinite(b).all(-1)
+    n = res.shape[0]
+    group = view.to(res.device).long() if view is not None else torch.zeros(n, dtype=torch.long)
+    r1 = res.sum(-1)
+    rho, npair = _lag1(r1, group, used)
+    bu = b[used].abs().mean(0).clamp_min(1e-300)
+    rel_rms = (bx.residual[used] ** 2).mean(0).sqrt() / bu
+    ru = r1[used]
+    skew = float(((ru - ru.mean()) ** 3).mean() / ru.var().clamp_min(1e-300) ** 1.5) \
+        if ru.numel() > 2 else math.nan
+    per_view = []
+    for v in torch.unique(group[used]).tolist():
+        m = used & (group == v)
+        per_view.append({"view": int(v), "n": int(m.sum()),
+                         "residual_rel_rms": float((bx.residual[m] ** 2).mean().sqrt()
+                                                   / b[m].abs().mean().clamp_min(1e-300))})
+    causes, mild = [], []
+    chi2 = chi_sig = None
+    ok = True
+    if noise_known:
+        chi2 = sol.chi2_reduced.tolist()
+        chi_sig = ((sol.chi2_reduced - 1.0) / (2.0 / sol.dof).sqrt()).tolist()
+        if max(chi_sig) > 3.0:
+            excess = (f"residual larger than the noise model allows (chi2/nu up to "
+                      f"{max(chi2):.3g}, {max(chi_sig):.2g} sigma above 1); the intervals are "
+                      f"inflated by sqrt(chi2/nu)")
+            if max(chi2) > CHI2_INADEQUATE:
+                ok = False
+                causes.append(excess)
+            else:
+                mild.append(excess)
+    structured = npair > 0 and math.isfinite(rho) and rho > max(0.2, 3.0 / math.sqrt(npair))
+    widen = 1.0
+    if structured:
+        ok = False
+        widen = math.sqrt((1.0 + rho) / max(1.0 - rho, 1e-3))
+        causes.append(f"spatially structured residual (lag-1 autocorrelation {rho:.2f}): "
+                      "an effect the model lacks, so the intervals are widened by "
+                      f"{widen:.2g}x")
+    if not ok:
+        if math.isfinite(skew) and skew > 1.0:
+            causes.append("positive residual tail: unmodelled specular highlights or a wrong "
+                          "BRDF")
+        elif math.isfinite(skew) and skew < -1.0:
+            causes.append("negative residual tail: cast shadows or occlusion the model lacks")
+        causes.append("lighting above the internal bandwidth (truncation), a wrong BRDF or "
+                      "its parameters, shadows and interreflections")
+    if ok and mild:
+        verdict = ("the model explains the data up to a small excess over the noise model "
+                   "(no structure in the residual); intervals inflated accordingly")
+        causes = mild
+    elif ok:
+        verdict = ("the model explains the data: " + (
+            "chi2/nu consistent with 1 and " if noise_known else "") +
+            "no structure in the residual")
+    else:
+        verdict = ("the model does not explain the data; claims are widened (see "
+                   "likely_causes)")
+    return {"adequate": ok, "verdict": verdict, "likely_causes": causes,
+            "chi2_reduced": chi2, "chi2_sigma": chi_sig,
+            "chi2_note": None if noise_known else "no noise model: no chi2 is reported (the "
+            "noise is estimated from the same residual)",
+            "residual_rel_rms": rel_rms.tolist(),
+            "residual_autocorrelation": None if not math.isfinite(rho) else rho,
+            "residual_skewness": None if not math.isfinite(skew) else skew,
+            "per_view": per_view, "widen": widen}

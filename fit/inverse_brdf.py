@@ -7,7 +7,7 @@ channel. Unknowns per channel: ``[Â_0 … Â_lmax, kd]``, solved by
 :func:`brdfcap.fit.solve.solve_wls` (same Tikhonov rule and uncertainty as the lighting).
 R&H's well-posedness result appears directly in the conditioning: the column of band ``l`` is
 ``Σ_m L_lm Y_lm(r)``, so bands where the lighting has no energy are *not determined*, and the
-predicted ``l*`` is the first band whose lighting amplitude ``sqrt(mean_m L_lm²)/|L_00|`` falls
+predicted ``l*`` is the first band whose lighting band norm ``sqrt(Σ_m L_lm²)/|L_00|`` falls
 below the noise level ``ε``.
 
 Known lighting may be SH coefficients, a light probe file (lat-long HDR, projected by
@@ -37,6 +37,10 @@ from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, sol
 __all__ = ["BRDFSHFit", "fit_brdf_sh", "fit_brdf_parametric",
            "ParametricFit", "fit_brdf_isotropic", "isotropic_design", "local_frames"]
 
+#: Adjacent filter bands whose estimates correlate below ``-ALIAS_CORR`` are reported as an
+#: aliased pair (one-sided angular support), not as determined.
+ALIAS_CORR = 0.95
+
 
 @dataclass
 class BRDFSHFit:
@@ -54,6 +58,7 @@ class BRDFSHFit:
     prediction: dict
     solution: LinearSolution
     checks: dict = field(default_factory=dict)
+    ambiguities: list = field(default_factory=list)  # aliased odd/even pairs (issue 12)
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -68,7 +73,7 @@ class BRDFSHFit:
                 "noise_level": self.noise_level, "prediction": self.prediction,
                 "regularization": {"rule": self.solution.rule,
                                    "lambda_rel": self.solution.lam_rel.tolist()},
-                "checks": self.checks}
+                "checks": self.checks, "ambiguities": self.ambiguities}
 
 
 def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
@@ -135,24 +140,73 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         band=bands[: lmax + 1], band_singular=sol.band_singular)
     rows, ill = band_statistics(sol_f)
     eps = noise_level(sol_f)
-    amp = torch.stack([Lp[band_l == l].pow(2).mean(0).sqrt() for l in range(lmax + 1)])
+    # ρ̂_l is seen through all 2l+1 coefficients of band l: its information is the band norm
+    # ||L_l||² = Σ_m L_lm² (not the mean over m, which is √(2l+1) too small; issue 12)
+    amp = torch.stack([Lp[band_l == l].pow(2).sum(0).sqrt() for l in range(lmax + 1)])
     rel = (amp / Lp[0].abs().clamp_min(1e-300)).median(-1).values  # (lmax+1,)
     below = torch.nonzero(rel < eps)
     pred_l = int(below[0]) if below.numel() else None
     prediction = {"model": "lighting spectrum", "eps": eps, "first_ill_band": pred_l,
                   "lstar": float(pred_l) if pred_l is not None else math.inf,
-                  "formula": "first l with sqrt(mean_m L_lm^2)/|L_00| < eps (R&H 2001: BRDF "
-                             "recovery needs lighting energy at that frequency)"}
+                  "formula": "first l with ||L_l||/|L_00| < eps, ||L_l||^2 = sum_m L_lm^2 (R&H "
+                             "2001: BRDF recovery needs lighting energy at that frequency)"}
     filt = sol.coefficients[: lmax + 1]
+    # one-sided angular support: adjacent Legendre terms alias (issue 12)
+    pairs, corr = _aliased_pairs(design, w, b.shape[0], lmax)
+    determined = sol.determined[: lmax + 1].clone()
+    filt_se = sol.stderr[: lmax + 1].clone()
+    ambiguities = []
+    if pairs:
+        for l in {x for p_ in pairs for x in p_}:
+            determined[l] = False
+            filt_se[l] = math.inf
+            rows[l]["ill_conditioned"] = True
+            rows[l]["aliased"] = True
+        first = min(x for p_ in pairs for x in p_)
+        ill = first if ill is None else min(ill, first)
+        ambiguities.append({
+            "name": "odd/even aliasing (one-sided angular support)",
+            "pairs": pairs, "correlation": [corr[p_[0]] for p_ in pairs],
+            "resolution": f"the samples see one side of the lobe: the estimates of bands l and "
+                          f"l+1 are correlated below -{ALIAS_CORR:g}, so only their combination "
+                          f"is determined; both are flagged not determined"})
     checks = {"filter_dc_le_1": bool((filt[0] <= 1 + 3 * sol.stderr[0].clamp_max(1e300)).all()),
               "note": "Â_0 is the directional albedo of the specular lobe at normal exitance: "
                       "<= 1 for an energy-conserving BRDF"}
-    return BRDFSHFit(lmax=lmax, filter=filt, filter_stderr=sol.stderr[: lmax + 1],
+    return BRDFSHFit(lmax=lmax, filter=filt, filter_stderr=filt_se,
                      kd=sol.coefficients[-1] if diffuse else None,
                      kd_stderr=sol.stderr[-1] if diffuse else None,
-                     determined=sol.determined[: lmax + 1], bands=rows,
+                     determined=determined, bands=rows,
                      ill_conditioned_from_l=ill, noise_level=eps, prediction=prediction,
-                     solution=sol, checks=checks)
+                     solution=sol, checks=checks, ambiguities=ambiguities)
+
+
+def _aliased_pairs(design, w, n, lmax, chunk: int = 32768) -> tuple[list[list[int]], dict]:
+    """Adjacent bands whose unregularised estimates correlate below ``-ALIAS_CORR``.
+
+    With samples on one side of the lobe only (e.g. photometric stereo with the lights in
+    front), ``P_l`` and ``P_{l+1}`` are nearly proportional over the sampled range of angles, so
+    the data fix ``ρ̂_l + c ρ̂_{l+1}`` but not each: the correlation of the two least-squares
+    estimates (from the weighted Gram of the design, any channel) tends to −1.
+    """
+    gram = None
+    for s_ in range(0, n, chunk):
+        a = design(s_, min(s_ + chunk, n))  # (n, C, J)
+        ws = w[s_:s_ + chunk]
+        g = torch.einsum("ncj,nc,nck->cjk", a, ws, a)
+        gram = g if gram is None else gram + g
+    out, corr = [], {}
+    for c in range(gram.shape[0]):
+        gi = torch.linalg.pinv(gram[c])[: lmax + 1, : lmax + 1]  # marginal over kd
+        d = torch.diagonal(gi).clamp_min(1e-300).sqrt()
+        cr = gi / d[:, None] / d[None, :]
+        for l in range(lmax):
+            v = float(cr[l, l + 1])
+            corr[l] = min(corr.get(l, 1.0), v)
+    for l in range(lmax):
+        if corr[l] < -ALIAS_CORR:
+            out.append([l, l + 1])
+    return out, corr
 
 
 def local_frames(normal: torch.Tensor) -> torch.Tensor:

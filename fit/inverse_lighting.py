@@ -22,12 +22,29 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
-from .conditioning import band_statistics, noise_level, predicted_lstar
+from .conditioning import (
+    BAYES_DEFINITION,
+    PRECISION_LIMIT,
+    band_statistics,
+    band_statistics_bayes,
+    model_adequacy,
+    noise_level,
+    predicted_lstar,
+    suggest_lmax,
+)
 from .lighting import SHFit
 from .sh import band_of_index, real_sh
-from .solve import noise_weights, solve_wls
+from .solve import noise_weights, restrict, solve_bayes, solve_wls
 
-__all__ = ["fit_lighting", "lighting_design"]
+__all__ = ["fit_lighting", "lighting_design", "internal_lmax", "INTERNAL_REL",
+           "INTERNAL_LMAX_CAP"]
+
+#: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
+INTERNAL_REL = 1e-3
+#: Highest internal band (K = 625 unknowns per channel).
+INTERNAL_LMAX_CAP = 24
+#: Scan-order blocks alternated between the two halves when there is only one view.
+SPLIT_BLOCKS = 16
 
 
 def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor | None,
@@ -66,11 +83,48 @@ def _apply(a: torch.Tensor, scale: torch.Tensor | None, x: torch.Tensor) -> torc
     return torch.einsum("nck,kc->nc", a, x)
 
 
-def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int,
+def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> int:
+    """Smallest bandwidth the lighting is solved to: what the BRDF filter carries above ``lmax``.
+
+    The smallest ``L ≥ lmax + 2`` beyond which the filtered amplitude of a band of a power-law
+    spectrum, ``|f_l| sqrt(2l+1)/(l+1)`` (``f_l`` the larger of the diffuse and specular
+    filters times their scales; slope 2 of :data:`brdfcap.fit.solve.SLOPE_PRIOR`), stays below
+    :data:`INTERNAL_REL` of the DC's (R&H 2001 §3: ``B_lm = Λ_l ρ̂_l L_lm``, so bands the filter
+    kills cannot alias into the data), capped at :data:`INTERNAL_LMAX_CAP` and where the
+    unknowns would exceed a quarter of the samples (``(L+1)² ≤ N/4``). :func:`fit_lighting`
+    also tries larger bandwidths up to the cap and keeps the one of highest evidence (a real
+    probe's spectrum is flatter than slope 2).
+    """
+    top = INTERNAL_LMAX_CAP
+    fd = diffuse_filter(top) * float(spec.kd.abs().max()) if spec.kd.numel() else 0.0
+    fs = specular_filter(spec, top) * float(spec.specular_scale.abs().max()) \
+        if spec.model != "lambertian" and spec.specular_scale.numel() else 0.0
+    f = torch.maximum(torch.as_tensor(fd).abs().expand(top + 1),
+                      torch.as_tensor(fs).abs().expand(top + 1))
+    l = torch.arange(top + 1, dtype=torch.float64)
+    amp = f * (2 * l + 1).sqrt() / (l + 1)
+    big = torch.nonzero(amp >= INTERNAL_REL * amp.max().clamp_min(1e-300)).flatten()
+    carried = int(big.max()) if big.numel() else 0
+    cap = top if n_samples is None else max(lmax, min(top, math.isqrt(max(n_samples, 1)) // 2 - 1))
+    return max(lmax, min(max(lmax + 2, carried), cap))
+
+
+def _split_halves(n: int, view: torch.Tensor | None, good: torch.Tensor) -> torch.Tensor:
+    """0/1 halves for the reproducibility check: alternate views, else alternate scan blocks."""
+    if view is not None:
+        vs = torch.unique(view[good])
+        if vs.numel() >= 2:
+            rank = torch.searchsorted(vs, view.clamp(min=int(vs.min()), max=int(vs.max())))
+            return rank % 2
+    return (torch.arange(n) * SPLIT_BLOCKS // max(n, 1)) % 2
+
+
+def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
                  brdf: BRDFSpec | None = None, reflected: torch.Tensor | None = None,
                  variance: torch.Tensor | None = None, rule: str = "gcv",
                  noise_model=None, band_penalty: torch.Tensor | None = None,
-                 scale_fixing: str = "", chunk: int = 32768) -> SHFit:
+                 scale_fixing: str = "", chunk: int = 32768, method: str = "bayes",
+                 view: torch.Tensor | None = None, lmax_internal: int | None = None) -> SHFit:
     """Recover SH lighting ``L_lm`` per channel from samples of a known BRDF.
 
     Parameters
@@ -95,12 +149,23 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int,
     noise_model : NoiseModel, optional
         Re-evaluate the variance at the fitted signal and refit once (IRLS): variances from the
         observed signal bias a shot-noise fit by ~σ²/s.
+    method : {"bayes", "tikhonov"}
+        ``"bayes"`` (default, issue 12): Gaussian posterior under a power-law prior on the
+        spectrum fitted by the evidence, solved to :func:`internal_lmax` and marginalised to
+        ``lmax`` (:func:`brdfcap.fit.solve.solve_bayes`); ``rule`` and ``band_penalty`` are
+        not used. ``"tikhonov"``: the earlier per-band Tikhonov with ``rule``.
+    view : torch.Tensor, optional
+        ``(N,)`` view index of each sample (split halves and per-view residuals).
+    lmax_internal : int, optional
+        Override :func:`internal_lmax`.
 
     Returns
     -------
     SHFit
         Coefficients ``((lmax+1)², C)``, standard errors, band statistics,
-        ``ill_conditioned_from_l`` and the seed's prediction at the measured noise level.
+        ``ill_conditioned_from_l`` and the seed's prediction at the measured noise level;
+        with ``"bayes"`` also the posterior covariance, model adequacy and suggested lmax.
+        ``lmax = "auto"`` reports up to the suggested lmax (at least 0).
     """
     if normal.ndim != 2 or normal.shape[-1] != 3:
         raise ValueError(f"normal must be (N, 3), got {tuple(normal.shape)}")
@@ -120,6 +185,13 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int,
     b = torch.where(good[:, None], b, torch.full_like(b, math.nan))
     var = None if variance is None else variance.to(torch.float64)
     w, src = noise_weights(b, var)
+    if method == "bayes":
+        return _fit_lighting_bayes(n, r, b, w, var is not None, src, lmax, spec, noise_model,
+                                   scale_fixing, chunk, view, good, lmax_internal)
+    if method != "tikhonov":
+        raise ValueError(f"unknown method {method!r}; valid: bayes, tikhonov")
+    if lmax == "auto":
+        raise ValueError("lmax='auto' needs method='bayes'")
     band = band_of_index(lmax).to(n.device)
     design, cscale = lighting_design(spec, n, r, lmax)
     sol = solve_wls(design, b, w, band, rule=rule, noise_known=var is not None,
@@ -159,4 +231,117 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int,
     fit.prediction = prediction
     fit.brdf = spec
     fit.solution = sol
+    return fit
+
+
+def _prediction(spec: BRDFSpec, eps: float) -> dict | None:
+    params = {"s": spec.s} if spec.model == "phong" else {"sigma": spec.sigma}
+    try:
+        return predicted_lstar(spec.model, eps, **params)
+    except (KeyError, ValueError, ZeroDivisionError):
+        return None
+
+
+def _band_filter(spec: BRDFSpec, lmax: int) -> torch.Tensor:
+    """``(lmax+1, C)`` combined filter ``kd Â_l/π + ks f_l`` (zero where unobservable)."""
+    f = diffuse_filter(lmax)[:, None] * spec.kd[None, :]
+    if spec.model != "lambertian":
+        f = f.abs() + (specular_filter(spec, lmax)[:, None] * spec.specular_scale[None, :]).abs()
+    return f
+
+
+def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, scale_fixing,
+                        chunk, view, good, lmax_internal) -> SHFit:
+    """Fit by method "bayes" of :func:`fit_lighting` (issue 12; ``docs/fitting.md#uncertainty``)."""
+    auto = lmax == "auto"
+    lrep = 0 if auto else int(lmax)
+    nsamp = int(((w > 0).any(-1)).sum())
+    split = _split_halves(n.shape[0], view, good)
+
+    def solve_to(cands):
+        band = band_of_index(cands[-1]).to(n.device)
+        design, cscale = lighting_design(spec, n, r, cands[-1])
+        return solve_bayes(design, b, w, band, noise_known=noise_known, noise_source=src,
+                           chunk=chunk, channel_scale=cscale, split=split,
+                           bandwidths=cands), cscale
+
+    cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
+    if lmax_internal is not None:
+        full, cscale = solve_to([max(int(lmax_internal), lrep)])
+    else:
+        # the filter's bandwidth first; larger ones (evidence-chosen) only when its residual
+        # is not white noise — the data then carry more than a slope-2 spectrum would
+        l0 = cap if auto else max(internal_lmax(spec, lrep, nsamp), lrep)
+        full, cscale = solve_to([l0])
+        first = model_adequacy(full, b, w, noise_known=noise_known, view=view)
+        if l0 < cap and (first["likely_causes"] or not first["adequate"]):
+            full, cscale = solve_to(sorted({l0, (l0 + cap) // 2, cap}))
+    lint = int(full.band.max())
+    cands = [lint]
+    band = band_of_index(lint).to(n.device)
+    design, _ = lighting_design(spec, n, r, lint)
+    if noise_model is not None and getattr(noise_model, "is_known", False):
+        pred = b - full.bayes.residual
+        var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
+                               dtype=torch.float64, device=n.device)
+        w, src = noise_weights(b, var2)
+        noise_known = True
+        full = solve_bayes(design, b, w, band, noise_known=True,
+                           noise_source=src + " (IRLS at the fit)", chunk=chunk,
+                           channel_scale=cscale, split=split, bandwidths=cands)
+    filt = _band_filter(spec, lint)
+    eps = noise_level(full)
+    prediction = _prediction(spec, eps)
+    rows_all = band_statistics_bayes(full, filt, eps)[0]
+    suggested = suggest_lmax(rows_all)
+    if auto:
+        lrep = max(suggested, 0)
+    k = (lrep + 1) ** 2
+    sol = restrict(full, k)
+    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps)
+    adequacy = model_adequacy(full, b, w, noise_known=noise_known, view=view)
+    widen2 = adequacy["widen"] ** 2
+    s_k = infl.to(sol.band.device)[sol.band].sqrt().T  # (C, K) split-half (Birge) widening
+    cov = sol.covariance * widen2 * s_k[:, :, None] * s_k[:, None, :]
+    post_se = torch.diagonal(cov, dim1=-2, dim2=-1).T.sqrt()  # (K, C)
+    det = sol.determined & band_det.to(sol.band.device)[sol.band]
+    if not adequacy["adequate"] and adequacy["widen"] > 1.0:
+        adequacy["withheld"] = "intervals widened; determined bands re-checked at the widened " \
+                               "precision"
+        rel = torch.tensor([r_["relative_precision"] for r_ in rows], dtype=torch.float64)
+        still = rel * adequacy["widen"] <= PRECISION_LIMIT
+        det = det & still[sol.band][:, None]
+        for r_, ok in zip(rows, still.tolist()):
+            if r_["determined"] and not ok:
+                r_["determined"], r_["ill_conditioned"] = False, True
+                r_["reason"] = "imprecise once widened for the structured residual"
+        ill = next((r_["l"] for r_ in rows if not r_["determined"]), None)
+    stderr = torch.where(det, post_se, torch.full_like(post_se, math.inf))
+    if not scale_fixing:
+        scale_fixing = (f"BRDF known ({spec.model}, {spec.parameters()}): the absolute scale "
+                        f"of the lighting follows from the BRDF's scale")
+    bx = full.bayes
+    fit = SHFit(lmax=lrep, coefficients=sol.coefficients, stderr=stderr, determined=det,
+                chi2_reduced=full.chi2_reduced, noise_source=full.noise_source, bands=rows,
+                ill_conditioned_from_l=ill, scale_fixing=scale_fixing, n_samples=full.n_samples)
+    fit.stderr_unregularised = sol.stderr_unregularised
+    fit.regularization = {
+        "rule": "evidence", "lambda": full.lam.tolist(), "lambda_rel": full.lam_rel.tolist(),
+        "penalty": "Gaussian prior Var(L_lm) = a (l+1)^-beta; a and beta by marginal "
+                   "likelihood (fit.solve.solve_bayes); --rule applies to method 'tikhonov'",
+        "definition": BAYES_DEFINITION}
+    fit.noise_level = eps
+    fit.prediction = prediction
+    fit.brdf = spec
+    fit.solution = sol
+    fit.method = "bayes"
+    fit.covariance = cov
+    fit.posterior_stderr = post_se
+    fit.internal_lmax = lint
+    fit.prior = {"slope": bx.slope.tolist(), "scale": bx.prior_scale.tolist(),
+                 "noise_scale": bx.noise_scale.tolist(),
+                 "log_evidence": bx.log_evidence.tolist(),
+                 "form": "Var(L_lm) = scale * (l+1)^-slope"}
+    fit.adequacy = adequacy
+    fit.suggested_lmax = suggested
     return fit

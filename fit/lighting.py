@@ -44,6 +44,63 @@ class SHFit:
     prediction: dict | None = None  # seed's analytic l* at eps (conditioning.predicted_lstar)
     brdf: object = None  # BRDFSpec the lighting was recovered with
     solution: object = None  # the LinearSolution
+    # issue 12 (method "bayes"): posterior of the reported bands, marginalised over the
+    # bands up to internal_lmax that were solved for but not reported
+    covariance: torch.Tensor | None = None  # (C, K, K) posterior covariance (after widening)
+    posterior_stderr: torch.Tensor | None = None  # (K, C) finite, sqrt(diag covariance)
+    internal_lmax: int | None = None
+    prior: dict = field(default_factory=dict)  # slope, scale, noise scale per channel
+    adequacy: dict = field(default_factory=dict)  # conditioning.model_adequacy
+    suggested_lmax: int | None = None  # conditioning.suggest_lmax
+    method: str = "tikhonov"
+
+    def l1_direction(self, channel: int | None = None, level: float = 0.95) -> dict:
+        """Direction of the band-1 lighting vector and its ``level`` confidence cone.
+
+        The real band-1 basis is ``(y, z, x)`` times ``sqrt(3/4π)`` (index ``l(l+1)+m``,
+        ``docs/conventions.md``), so ``(L_11, L_1-1, L_10)`` points toward the dominant light.
+        The cone half-angle is ``atan(sqrt(q λ_max) / |L1|)`` with ``λ_max`` the largest
+        variance of the covariance projected perpendicular to the direction and ``q`` the
+        ``level`` quantile of χ²(2) (delta method).
+
+        Parameters
+        ----------
+        channel : int, optional
+            Colour channel; default: the channel sum.
+        level : float
+            Confidence level of the cone.
+
+        Returns
+        -------
+        dict
+            ``direction`` (3,) unit vector (world frame), ``cone_deg``, ``norm``, ``level``.
+        """
+        if self.lmax < 1 or self.covariance is None:
+            raise ValueError("l1_direction needs lmax >= 1 and a posterior covariance")
+        perm = [3, 1, 2]  # x, y, z
+        if channel is None:
+            v = self.coefficients[perm].sum(-1)
+            cov = self.covariance[:, perm][:, :, perm].sum(0)
+        else:
+            v = self.coefficients[perm, channel]
+            cov = self.covariance[channel][perm][:, perm]
+        norm = float(v.norm())
+        d = v / max(norm, 1e-300)
+        proj = torch.eye(3, dtype=torch.float64) - torch.outer(d, d)
+        lam = float(torch.linalg.eigvalsh(proj @ cov @ proj).max().clamp_min(0.0))
+        q = -2.0 * math.log(1.0 - level)  # χ²(2) quantile in closed form
+        cone = math.degrees(math.atan2(math.sqrt(q * lam), norm))
+        return {"direction": d.tolist(), "cone_deg": cone, "norm": norm, "level": level}
+
+    def uncertainty_json(self) -> dict:
+        """Keys of the issue-12 model for ``results.json: lighting`` (empty for Tikhonov)."""
+        if self.method != "bayes":
+            return {}
+        return {"method": "bayes-power-law-prior", "internal_lmax": self.internal_lmax,
+                "prior": self.prior,
+                "posterior_covariance": self.covariance.tolist(),
+                "posterior_stderr": self.posterior_stderr.tolist(),
+                "adequacy": self.adequacy, "suggested_lmax": self.suggested_lmax}
 
     @property
     def snr(self) -> torch.Tensor:
@@ -66,7 +123,8 @@ class AlbedoFit:
 def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax: int,
                             variance: torch.Tensor | None = None,
                             albedo: torch.Tensor | None = None,
-                            noise_model=None, chunk: int = 32768, rule: str = "gcv") -> SHFit:
+                            noise_model=None, chunk: int = 32768, rule: str = "gcv",
+                            view: torch.Tensor | None = None) -> SHFit:
     """Recover SH lighting ``L_lm`` (per channel) from Lambertian pixels by weighted LS.
 
     Thin wrapper of :func:`brdfcap.fit.inverse_lighting.fit_lighting` with a Lambertian BRDF
@@ -90,7 +148,9 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
         When given, the variance is re-evaluated at the *fitted* signal and the fit repeated
         once (iteratively reweighted LS).
     rule : str
-        Tikhonov weight rule (:mod:`brdfcap.fit.solve`).
+        Tikhonov weight rule (:mod:`brdfcap.fit.solve`; used only by method "tikhonov").
+    view : torch.Tensor, optional
+        ``(N,)`` view index per sample (split-half reproducibility, per-view residuals).
 
     Returns
     -------
@@ -113,7 +173,8 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
         scale_fixing = "albedo known from capture.toml [material].albedo"
     spec = BRDFSpec("lambertian", kd=kd)
     return fit_lighting(normals, radiance, lmax, brdf=spec, variance=variance, rule=rule,
-                        noise_model=noise_model, scale_fixing=scale_fixing, chunk=chunk)
+                        noise_model=noise_model, scale_fixing=scale_fixing, chunk=chunk,
+                        view=view)
 
 
 def fit_albedo_directional(normals: torch.Tensor, wi: torch.Tensor, light_radiance: torch.Tensor,

@@ -49,6 +49,9 @@ def lighting_json(fit: SHFit) -> dict:
     out["regularization"] = fit.regularization
     out["noise_level"] = fin(float(fit.noise_level))
     out["prediction"] = fit.prediction
+    if getattr(fit, "method", "") == "bayes":  # issue 12: posterior, adequacy, suggested lmax
+        out["ill_conditioning_definition"] = fit.regularization["definition"]
+        out.update(fit.uncertainty_json())
     return out
 
 
@@ -58,6 +61,10 @@ def conditioning_json(fit: SHFit | None, brdf_fit=None) -> dict:
     if fit is not None:
         out["lighting"] = {"measured": fit.ill_conditioned_from_l, "predicted": fit.prediction,
                            "noise_level": fin(float(fit.noise_level))}
+        if getattr(fit, "method", "") == "bayes":
+            out["definition"] = fit.regularization["definition"]
+            out["lighting"]["suggested_lmax"] = fit.suggested_lmax
+            out["lighting"]["adequacy"] = fit.adequacy["verdict"]
     if brdf_fit is not None and hasattr(brdf_fit, "ill_conditioned_from_l"):
         out["brdf"] = {"measured": brdf_fit.ill_conditioned_from_l,
                        "predicted": brdf_fit.prediction,

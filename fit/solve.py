@@ -51,7 +51,9 @@ from brdfcap.core.errors import FitError
 
 from .memory import check_wls_memory
 
-__all__ = ["LinearSolution", "solve_wls", "noise_weights", "drop_nonfinite_directions",
+__all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restrict",
+           "SLOPE_GRID", "SLOPE_PRIOR", "EVIDENCE_GRID", "RATIO_LIMIT", "noise_weights",
+           "drop_nonfinite_directions",
            "default_band_penalty",
            "REGULARIZATION_RULES", "EIG_RTOL",
            "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID"]
@@ -96,6 +98,8 @@ class LinearSolution:
     band: torch.Tensor  # (K,) band of each coefficient
     band_singular: list[torch.Tensor] = field(default_factory=list)  # per band, (C, 2l'+1)
     covariance: torch.Tensor | None = None  # (C, K, K) of the regularised estimate
+    bayes: object = None  # BayesExtras from solve_bayes (None for solve_wls)
+    internal_lmax: int | None = None  # bandwidth solved for when restricted (solve_bayes)
 
     @property
     def snr(self) -> torch.Tensor:
@@ -358,3 +362,339 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         resolution=resol, lam=lam_abs, lam_rel=lam_rel, chi2_reduced=chi2, dof=dofs,
         rule=rule_used, noise_source=noise_source, n_samples=int(nuse.max()), band=band,
         band_singular=[torch.stack(v) for v in band_sv], covariance=covs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Gaussian model with a power-law prior on the SH spectrum (issue 12; docs/fitting.md#uncertainty)
+# ---------------------------------------------------------------------------------------------
+
+#: Slopes β of the prior ``Var(x_lm) = a (l+1)^-β`` searched by the evidence (step 0.5).
+SLOPE_GRID = torch.linspace(0.0, 6.0, 13, dtype=torch.float64)
+#: Gaussian hyperprior on β (mean, s.d.): real illumination has an SH power spectrum falling
+#: roughly as ``l^-2`` (Dror, Willsky & Adelson 2004, J. Vision 4(9) §4); it only matters when
+#: the data cannot tell the slope (one measured combination, e.g. a flat patch).
+SLOPE_PRIOR = (2.0, 1.0)
+#: log10 of ``λ / mean(eig)`` searched by the evidence (``λ = σ²/a``, noise over prior scale).
+EVIDENCE_GRID = torch.linspace(-16.0, 4.0, 81, dtype=torch.float64)
+#: A coefficient is *resolved* by the data when its posterior variance is at most this
+#: fraction of its prior variance (the data, not the prior, set at least ~70% of its s.d.).
+RATIO_LIMIT = 0.1
+
+
+@dataclass
+class BayesExtras:
+    """What :func:`solve_bayes` adds to a :class:`LinearSolution` (``sol.bayes``).
+
+    Shapes: ``K`` coefficients, ``C`` channels, ``N`` samples.
+    """
+
+    prior_variance: torch.Tensor  # (K, C) a (l+1)^-β, in units of the coefficients²
+    posterior_variance: torch.Tensor  # (K, C) diagonal of the posterior covariance
+    slope: torch.Tensor  # (C,) β chosen by the evidence
+    prior_scale: torch.Tensor  # (C,) a = σ²/λ
+    noise_scale: torch.Tensor  # (C,) σ² multiplying the noise model (1 = as given)
+    log_evidence: torch.Tensor  # (C,) log p(b | β, λ, σ²) up to a data-only constant
+    residual: torch.Tensor  # (N, C) b - A x̂ (0 where the weight is 0)
+    weighted_residual: torch.Tensor  # (N, C) sqrt(w) (b - A x̂)
+    split_coefficients: torch.Tensor | None = None  # (2, K, C) posterior means of two halves
+    split_covariance: torch.Tensor | None = None  # (2, C, K, K)
+
+
+def _accumulate(design, b, w, cs, chunk, split):
+    """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K) and their per-half copies."""
+    n, nch = b.shape
+    gram = rhs = halves = None
+    shared_w = all(torch.equal(w[:, 0], w[:, c]) for c in range(1, nch))
+    for s, e, a in _design_chunks(design, n, chunk):
+        a = a.to(torch.float64)
+        if gram is None:
+            k = a.shape[-1]
+            halves = (torch.zeros(2, nch, k, k, dtype=torch.float64, device=b.device),
+                      torch.zeros(2, nch, k, dtype=torch.float64, device=b.device))
+        # each half from its own rows (one product per row in all), the total is their sum
+        hs = split[s:e] if split is not None else torch.zeros(e - s, dtype=torch.long,
+                                                             device=b.device)
+        for h in (0, 1):
+            rows = hs == h
+            if not bool(rows.any()):
+                continue
+            ah, wh, bh = a[rows], w[s:e][rows], b[s:e][rows]
+            if ah.ndim == 2 and shared_w:
+                aw = ah * wh[:, :1]
+                g1, r1 = aw.T @ ah, aw.T @ bh
+                for c in range(nch):
+                    sc = 1.0 if cs is None else cs[c]
+                    halves[0][h, c] += g1 * sc * sc
+                    halves[1][h, c] += r1[:, c] * sc
+                continue
+            for c in range(nch):
+                ac = ah if ah.ndim == 2 else ah[:, c, :]
+                if cs is not None:
+                    ac = ac * cs[c]
+                awc = ac * wh[:, c:c + 1]
+                halves[0][h, c] += awc.T @ ac
+                halves[1][h, c] += awc.T @ bh[:, c]
+    gram, rhs = halves[0].sum(0), halves[1].sum(0)
+    return gram, rhs, halves if split is not None else None
+
+
+def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torch.Tensor,
+                w: torch.Tensor, band: torch.Tensor, *, noise_known: bool = True,
+                noise_source: str = "", chunk: int = 65536,
+                channel_scale: torch.Tensor | None = None, split: torch.Tensor | None = None,
+                slopes: torch.Tensor | None = None,
+                bandwidths: list[int] | None = None) -> LinearSolution:
+    r"""Gaussian posterior of SH coefficients under a power-law prior fitted by the evidence.
+
+    Model, per channel ``c``: ``b = A x + e`` with ``e ~ N(0, σ² W^{-1})`` (``W`` the weights
+    of the noise model, ``σ² ≥ 1`` an inflation the evidence may choose when the model
+    underestimates the scatter; free when there is no noise model) and the prior
+    ``x_lm ~ N(0, a (l+1)^{-β})`` — the power-law spectrum of natural lighting (Dror et al.
+    2004) and the form of R&H 2001's spectral argument (§3: a band is recoverable when its
+    filtered power ``Â_l² E|L_l|²`` exceeds the noise). ``a`` and ``β`` maximise the marginal
+    likelihood (type-II ML; MacKay 1992, "Bayesian interpolation", eqs. 2.10-2.22) with a
+    weak hyperprior on β (:data:`SLOPE_PRIOR`); ``σ²`` is profiled. The returned coefficients
+    are the posterior mean and ``covariance`` the full posterior covariance
+    ``σ² P^{-1/2} (P^{-1/2} G P^{-1/2} + λ I)^{-1} P^{-1/2}``, ``λ = σ²/a``, ``P = diag((l+1)^β)``:
+    it contains the regularisation bias (as its expectation under the prior) as well as the
+    noise, so intervals stay calibrated where the prior is active (Wahba 1983, JRSS B 45,
+    "Bayesian confidence intervals for the cross-validated smoothing spline").
+
+    Pass the design to a bandwidth above the one to report and slice the result with
+    :func:`restrict`: the reported block of the posterior covariance is then marginalised over
+    the unreported bands (truncation and aliasing enter it).
+
+    Parameters
+    ----------
+    design, b, w, band, noise_source, chunk, channel_scale
+        As in :func:`solve_wls`.
+    noise_known : bool
+        ``w`` from a noise model (``σ² = max(σ²_ML, 1)``) or uniform (``σ² = σ²_ML``).
+    split : torch.Tensor, optional
+        ``(N,)`` 0/1 membership of two disjoint halves of the samples: both halves are also
+        solved (same hyper-parameters) for the reproducibility check of
+        :func:`brdfcap.fit.conditioning.band_statistics_bayes`.
+    slopes : torch.Tensor, optional
+        Grid of β (default :data:`SLOPE_GRID`, searched coarse-to-fine).
+    bandwidths : list of int, optional
+        Candidate internal bandwidths ``L`` (the design holds bands up to ``max(band)``; the
+        Gram of bands ``≤ L`` is its leading block): the one of highest evidence is solved —
+        models of different bandwidth explain the same data, so their marginal likelihoods
+        compare directly (MacKay 1992 §3, "Occam factor"). Default: all of ``band``.
+
+    Returns
+    -------
+    LinearSolution
+        ``rule = "evidence"``; ``determined`` = posterior/prior variance ≤ :data:`RATIO_LIMIT`;
+        ``stderr`` the posterior s.d. (``inf`` where not determined); ``resolution`` the
+        diagonal of the resolution matrix ``1 − post/prior``; ``bayes`` a :class:`BayesExtras`.
+    """
+    b = b.to(torch.float64)
+    w = w.to(torch.float64)
+    n, nch = b.shape
+    dev = b.device
+    band = band.to(dev)
+    k = int(band.shape[0])
+    finite = torch.isfinite(b)
+    w = torch.where(finite & torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
+    b = torch.where(finite, b, torch.zeros_like(b))
+    nuse = (w > 0).sum(0)
+    if int(nuse.max()) == 0:
+        raise FitError("no sample with positive weight to fit")
+    cs = None if channel_scale is None else channel_scale.to(torch.float64).to(dev)
+    if callable(design) and n * k <= MATERIALIZE_LIMIT:
+        design = design(0, n)
+    sp = None if split is None else split.to(dev).long()
+    gram, rhs, halves = _accumulate(design, b, w, cs, chunk, sp)
+    btwb = (w * b * b).sum(0)
+    grid = EVIDENCE_GRID.to(dev)
+    mu, sd = SLOPE_PRIOR
+    tr = torch.diagonal(gram, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)
+    owner = list(range(nch))
+    for c in range(1, nch):
+        for c0 in range(c):
+            if owner[c0] == c0 and torch.allclose(gram[c] / tr[c], gram[c0] / tr[c0],
+                                                  rtol=1e-12, atol=1e-15):
+                owner[c] = c0
+                break
+    cache: dict = {}
+
+    def eig_of(c, beta, kc):
+        # one eigen-decomposition per (channel, β, bandwidth); channels whose Grams are equal
+        # up to a scale (shared design and weights, per-channel albedo) share it
+        ps = (band[:kc] + 1).to(torch.float64) ** (-0.5 * beta)
+        key = (owner[c], beta, kc)
+        if key not in cache:
+            g = gram[owner[c], :kc, :kc] * ps[:, None] * ps[None, :]
+            g = 0.5 * (g + g.T)
+            sc = torch.diagonal(g).mean().clamp_min(1e-300)
+            try:
+                ev, u = torch.linalg.eigh(g / sc)
+            except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
+                u, ev, _ = torch.linalg.svd(g / sc)  # symmetric PSD: the same factorisation
+            cache[key] = (ev.clamp_min(0.0) * sc, u)
+        ev, u = cache[key]
+        trc = torch.diagonal(gram[c, :kc, :kc]).sum().clamp_min(1e-300)
+        tro = torch.diagonal(gram[owner[c], :kc, :kc]).sum().clamp_min(1e-300)
+        return ev * (trc / tro), u, ps
+
+    def m2lp_of(c, beta, kc):
+        nc = nuse[c].to(torch.float64)
+        ev, u, ps = eig_of(c, beta, kc)
+        ct = u.T @ (ps * rhs[c, :kc])
+        keep = ev > EIG_RTOL * ev.max().clamp_min(1e-300)
+        scale = ev.mean().clamp_min(1e-300)
+        g, ck = ev[keep], ct[keep]
+        rss0 = (btwb[c] - (ck ** 2 / g).sum()).clamp_min(1e-15 * btwb[c])
+        lams = 10.0 ** grid * scale
+        ll = lams[:, None]
+        q = rss0 + (ck[None] ** 2 * ll / (g[None] * (g[None] + ll))).sum(-1)
+        s2 = q / nc
+        if noise_known:
+            s2 = s2.clamp_min(1.0)
+        m2lp = (nc * torch.log(s2) + q / s2 + torch.log1p(ev[None] / ll).sum(-1)
+                + (beta - mu) ** 2 / sd ** 2)
+        j = int(torch.argmin(m2lp))
+        return (float(m2lp[j]), beta, float(lams[j]), float(s2[j]), float(scale))
+
+    def search(kc):
+        out = []
+        for c in range(nch):
+            if slopes is not None:
+                cand = [m2lp_of(c, bt, kc) for bt in slopes.tolist()]
+            else:  # coarse (step 1) then ±0.5 around the best
+                cand = [m2lp_of(c, bt, kc) for bt in SLOPE_GRID[::2].tolist()]
+                b0 = min(cand)[1]
+                cand += [m2lp_of(c, bt, kc) for bt in (b0 - 0.5, b0 + 0.5)
+                         if float(SLOPE_GRID[0]) <= bt <= float(SLOPE_GRID[-1])]
+            out.append(min(cand))
+        return out, sum(t[0] for t in out)
+
+    lmax_all = int(band.max())
+    cands = sorted({min(int(x), lmax_all) for x in (bandwidths or [lmax_all])})
+    best, tot = None, math.inf
+    chosen = cands[-1]
+    for lc in cands:  # ascending; stop at the first bandwidth the evidence does not prefer
+        b_, t_ = search((lc + 1) ** 2)
+        if t_ >= tot:
+            break
+        best, tot, chosen = b_, t_, lc
+    k = (chosen + 1) ** 2
+    band = band[:k]
+    gram, rhs = gram[:, :k, :k], rhs[:, :k]
+    if halves is not None:
+        halves = (halves[0][:, :, :k, :k], halves[1][:, :, :k])
+    full_design = design
+    if callable(full_design):
+        def design(s_, e_):
+            return full_design(s_, e_)[..., :k]
+    else:
+        design = full_design[..., :k]
+
+    coef = torch.zeros(k, nch, dtype=torch.float64, device=dev)
+    x0 = torch.zeros_like(coef)
+    post = torch.zeros_like(coef)
+    prior = torch.zeros_like(coef)
+    se_unreg = torch.full_like(coef, math.inf)
+    resol = torch.zeros_like(coef)
+    covs = torch.zeros(nch, k, k, dtype=torch.float64, device=dev)
+    lam_abs = torch.zeros(nch, dtype=torch.float64, device=dev)
+    lam_rel = torch.zeros_like(lam_abs)
+    sig2 = torch.zeros_like(lam_abs)
+    trh = torch.zeros_like(lam_abs)
+    slope_t = torch.zeros_like(lam_abs)
+    logev = torch.zeros_like(lam_abs)
+    split_x = split_cov = None
+    if halves is not None:
+        split_x = torch.zeros(2, k, nch, dtype=torch.float64, device=dev)
+        split_cov = torch.zeros(2, nch, k, k, dtype=torch.float64, device=dev)
+    band_sv: list[list[torch.Tensor]] = [[] for _ in range(int(band.max()) + 1)]
+    for c in range(nch):
+        m2lp, beta, lam, s2, scale = best[c]
+        ev, u, ps = eig_of(c, beta, k)
+        ct = u.T @ (ps * rhs[c])
+        keep = ev > EIG_RTOL * ev.max().clamp_min(1e-300)
+        pu = ps[:, None] * u
+        coef[:, c] = pu @ (ct / (ev + lam))
+        x0[:, c] = pu[:, keep] @ (ct[keep] / ev[keep])
+        covs[c] = (pu / (ev + lam)) @ pu.T * s2
+        post[:, c] = torch.diagonal(covs[c])
+        prior[:, c] = s2 / lam * ps ** 2
+        var_unreg = (pu[:, keep] ** 2 / ev[keep]).sum(-1) * s2
+        full = (u[:, keep] ** 2).sum(-1) > 1.0 - 1e-6
+        se_unreg[:, c] = torch.where(full, var_unreg.sqrt(), torch.full_like(var_unreg, math.inf))
+        resol[:, c] = (u ** 2 * (ev / (ev + lam))).sum(-1)
+        lam_abs[c], lam_rel[c], sig2[c], slope_t[c] = lam, lam / scale, s2, beta
+        trh[c] = (ev / (ev + lam)).sum()
+        logev[c] = -0.5 * m2lp
+        if halves is not None:
+            for h in (0, 1):
+                mh = pu.T @ halves[0][h, c] @ pu  # in the eigen-basis of the full problem
+                mh = 0.5 * (mh + mh.T) + lam * torch.eye(k, dtype=torch.float64, device=dev)
+                ch = torch.linalg.cholesky(mh)
+                inv = torch.cholesky_inverse(ch)
+                split_x[h, :, c] = pu @ (inv @ (pu.T @ halves[1][h, c]))
+                split_cov[h, c] = pu @ inv @ pu.T * s2
+        for l in range(len(band_sv)):
+            idx = band == l
+            gb = gram[c][idx][:, idx]
+            band_sv[l].append(torch.linalg.eigvalsh(0.5 * (gb + gb.T)).clamp_min(0.0).sqrt()
+                              .flip(0))
+    # residual pass: exact RSS for χ², and the residual itself for the adequacy checks
+    res = torch.zeros_like(b)
+    for s, e, a in _design_chunks(design, n, chunk):
+        a = a.to(torch.float64)
+        if a.ndim == 2:
+            pred = a @ (coef if cs is None else coef * cs)
+        else:
+            pred = torch.einsum("nck,kc->nc", a, coef)
+        res[s:e] = torch.where(w[s:e] > 0, b[s:e] - pred, torch.zeros_like(pred))
+    wres = res * w.sqrt()
+    dof = (nuse.to(torch.float64) - trh).clamp_min(1.0)
+    chi2 = (wres ** 2).sum(0) / dof
+    ratio = post / prior.clamp_min(1e-300)
+    det = ratio <= RATIO_LIMIT
+    se = torch.where(det, post.sqrt(), torch.full_like(post, math.inf))
+    bayes = BayesExtras(prior_variance=prior, posterior_variance=post, slope=slope_t,
+                            prior_scale=sig2 / lam_abs, noise_scale=sig2, log_evidence=logev,
+                            residual=res, weighted_residual=wres, split_coefficients=split_x,
+                            split_covariance=split_cov)
+    return LinearSolution(
+        coefficients=coef, coefficients_unregularised=x0, stderr=se,
+        stderr_unregularised=se_unreg, determined=det, resolution=resol, lam=lam_abs,
+        lam_rel=lam_rel, chi2_reduced=chi2, dof=dof, rule="evidence", noise_source=noise_source,
+        n_samples=int(nuse.max()), band=band, band_singular=[torch.stack(v) for v in band_sv],
+        covariance=covs, bayes=bayes)
+
+
+def restrict(sol: LinearSolution, k: int) -> LinearSolution:
+    """Keep the first ``k`` coefficients of a solution, marginalised over the others.
+
+    For a Gaussian posterior the marginal of a block is that block of the mean and of the
+    covariance, so slicing *is* marginalising: the uncertainty the unreported bands add to the
+    reported ones (through shared columns of the design: truncation, aliasing, partial coverage)
+    stays in the reported covariance.
+    """
+    lmax = int(sol.band[:k].max())
+    out = LinearSolution(
+        coefficients=sol.coefficients[:k],
+        coefficients_unregularised=sol.coefficients_unregularised[:k],
+        stderr=sol.stderr[:k], stderr_unregularised=sol.stderr_unregularised[:k],
+        determined=sol.determined[:k], resolution=sol.resolution[:k], lam=sol.lam,
+        lam_rel=sol.lam_rel, chi2_reduced=sol.chi2_reduced, dof=sol.dof, rule=sol.rule,
+        noise_source=sol.noise_source, n_samples=sol.n_samples, band=sol.band[:k],
+        band_singular=sol.band_singular[:lmax + 1],
+        covariance=None if sol.covariance is None else sol.covariance[:, :k, :k],
+        internal_lmax=int(sol.band.max()))
+    bx = sol.bayes
+    if bx is not None:
+        out.bayes = BayesExtras(
+            prior_variance=bx.prior_variance[:k], posterior_variance=bx.posterior_variance[:k],
+            slope=bx.slope, prior_scale=bx.prior_scale, noise_scale=bx.noise_scale,
+            log_evidence=bx.log_evidence, residual=bx.residual,
+            weighted_residual=bx.weighted_residual,
+            split_coefficients=None if bx.split_coefficients is None
+            else bx.split_coefficients[:, :k],
+            split_covariance=None if bx.split_covariance is None
+            else bx.split_covariance[:, :, :k, :k])
+    return out

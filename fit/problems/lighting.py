@@ -31,7 +31,7 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
         "lambertian", kd=[1.0, 1.0, 1.0])
     fit = fit_lighting(samples.normal, samples.radiance, opts.lmax, spec,
                        reflected=samples.reflected, variance=samples.variance, rule=opts.rule,
-                       noise_model=known.noise)
+                       noise_model=known.noise, view=samples.view)
     pred = render_sh(spec, samples.normal, samples.reflected, fit.coefficients)
     params = spec.parameters()
     rec = {"lighting": lighting_json(fit),

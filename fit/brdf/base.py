@@ -1,0 +1,326 @@
+"""The BRDF-model protocol and its one registry.
+
+A BRDF model is a class registered with :func:`register_brdf_model`. An instance holds the
+parameters of one material and answers everything the rest of brdfcap asks of a reflectance
+model:
+
+* the **point evaluation** ``f(n, ωi, ωo)`` (:meth:`BRDFModel.eval`) and the transfer function
+  ``f · max(n·ωi, 0)`` (:meth:`BRDFModel.eval_cos`) — what a renderer needs
+  (:mod:`brdfcap.capture.reference`);
+* the **SH-domain filter** ``Λ_l ρ̂_l`` of its specular part about the reflected direction,
+  both the approximation the fits use (:meth:`BRDFModel.sh_filter`, R&H 2001's) and, where it
+  differs, the exact quadrature filter at normal exitance (:meth:`BRDFModel.sh_filter_exact`);
+* the analytic band ``l*(ε)`` beyond which inverse lighting is ill-conditioned
+  (:meth:`BRDFModel.predicted_lstar`);
+* its **parameters** with bounds and units (:attr:`BRDFModel.PARAMETERS`) and a JSON round
+  trip (:meth:`BRDFModel.to_json`, :func:`brdf_from_json`).
+
+Every model is a Lambertian term ``kd/π`` plus a specular part (``kd = 0`` for a purely
+specular material). Conventions: ``docs/conventions.md`` (directions point away from the
+surface, world frame, linear radiance); ``docs/fitting.md#brdf-models`` lists the models.
+
+Adding a model: subclass :class:`BRDFModel` in one module, decorate it with
+:func:`register_brdf_model`, and import the module from ``brdfcap/fit/brdf/__init__.py`` (or
+from anywhere at run time): the simulator, the fits, the reports and the CLI's ``--brdf``
+choices read the registry.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import torch
+
+__all__ = ["Parameter", "BRDFModel", "register_brdf_model", "unregister_brdf_model",
+           "get_brdf_model", "brdf_model_names", "make_brdf", "brdf_from_json", "as_brdf_model",
+           "BRDF_NAMES", "orthonormal_basis"]
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One parameter of a BRDF model.
+
+    ``per_channel``: a ``(C,)`` colour quantity (a scalar is broadcast); otherwise a float
+    (or, with ``choices``, a string). ``bounds``: closed interval of valid values
+    (``None`` = unbounded on that side); ``units``: how the value is measured.
+    """
+
+    name: str
+    default: Any
+    bounds: tuple[float | None, float | None] = (None, None)
+    units: str = "1"
+    per_channel: bool = False
+    doc: str = ""
+    choices: tuple[str, ...] | None = None
+
+    def check(self, value, model: str):
+        """Return ``value`` validated (tensor ``(C,)`` float64 or float or str)."""
+        if self.choices is not None:
+            if value not in self.choices:
+                raise ValueError(f"{model}: parameter {self.name!r} must be one of "
+                                 f"{', '.join(self.choices)}, got {value!r}")
+            return value
+        if self.per_channel:
+            v = torch.as_tensor(value, dtype=torch.float64).reshape(-1)
+            vals = v
+        else:
+            v = float(torch.as_tensor(value, dtype=torch.float64).reshape(-1)[0]) \
+                if not isinstance(value, (int, float)) else float(value)
+            vals = torch.tensor([v], dtype=torch.float64)
+        lo, hi = self.bounds
+        if not torch.isfinite(vals).all() or (lo is not None and (vals < lo).any()) or \
+                (hi is not None and (vals > hi).any()):
+            raise ValueError(f"{model}: parameter {self.name!r} = {value!r} outside "
+                             f"[{lo}, {hi}] ({self.units})")
+        return v
+
+
+KD = Parameter("kd", 1.0, (0.0, None), "reflectance", True,
+               "Lambertian albedo of the diffuse term kd/π")
+
+
+class BRDFModel:
+    """Base class of every registered BRDF model (module doc).
+
+    Subclasses set :attr:`name`, :attr:`PARAMETERS` (``kd`` first) and implement
+    :meth:`eval_specular_cos`, :meth:`sh_filter`; optionally :meth:`sample_specular` (importance
+    sampling for the reference renderer), :meth:`sh_filter_exact`, :meth:`predicted_lstar`.
+    Parameters are attributes of the instance (``kd``, ``ks``, ``sigma``, ...).
+    """
+
+    name: ClassVar[str] = ""
+    aliases: ClassVar[tuple[str, ...]] = ()
+    PARAMETERS: ClassVar[tuple[Parameter, ...]] = (KD,)
+    #: ``True`` for a Dirac specular lobe (mirror): the renderer looks the probe up at ``r``.
+    delta: ClassVar[bool] = False
+    #: Name of the parameter that scales the specular SH filter (``ks``, ``f0``), or ``None``.
+    scale_parameter: ClassVar[str | None] = None
+    #: Short description for the CLI help and the docs.
+    summary: ClassVar[str] = ""
+
+    def __init__(self, **params):
+        known = {p.name: p for p in self.PARAMETERS}
+        unknown = set(params) - set(known)
+        if unknown:
+            raise ValueError(f"{self.name}: unknown parameter(s) {', '.join(sorted(unknown))}; "
+                             f"valid: {', '.join(known)}")
+        for p in self.PARAMETERS:
+            setattr(self, p.name, p.check(params.get(p.name, p.default), self.name))
+        self._check()
+
+    def _check(self) -> None:
+        """Extra cross-parameter validation (subclasses)."""
+
+    # ---------------------------------------------------------------- parameters and JSON
+    def parameters(self) -> dict:
+        """JSON-ready parameters ``{name: value}`` (colour quantities as lists)."""
+        out = {}
+        for p in self.PARAMETERS:
+            v = getattr(self, p.name)
+            out[p.name] = v.tolist() if isinstance(v, torch.Tensor) else v
+        return out
+
+    def to_json(self) -> dict:
+        """``{"model": name, "parameters": {...}}`` (inverse: :func:`brdf_from_json`)."""
+        return {"model": self.name, "parameters": self.parameters()}
+
+    @classmethod
+    def parameter_table(cls) -> list[dict]:
+        """Parameters with bounds and units (for docs, reports and error messages)."""
+        return [{"name": p.name, "default": p.default, "bounds": list(p.bounds),
+                 "units": p.units, "per_channel": p.per_channel, "doc": p.doc,
+                 **({"choices": list(p.choices)} if p.choices else {})}
+                for p in cls.PARAMETERS]
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.parameters()})"
+
+    @property
+    def channels(self) -> int:
+        """Number of colour channels of the per-channel parameters."""
+        return max([getattr(self, p.name).numel() for p in self.PARAMETERS if p.per_channel]
+                   or [1])
+
+    def _c(self, name: str, ref: torch.Tensor) -> torch.Tensor:
+        """Parameter ``name`` as ``(C,)`` on ``ref``'s device and dtype."""
+        return getattr(self, name).to(device=ref.device, dtype=ref.dtype)
+
+    @property
+    def specular_scale(self) -> torch.Tensor:
+        """``(C,)`` scale of the specular SH filter (0 for a purely diffuse model)."""
+        if self.scale_parameter is None:
+            return torch.zeros_like(self.kd)
+        return getattr(self, self.scale_parameter)
+
+    @property
+    def has_specular(self) -> bool:
+        """Whether the model has a specular part at all."""
+        return self.scale_parameter is not None
+
+    # ---------------------------------------------------------------- point evaluation
+    def eval_specular_cos(self, normal: torch.Tensor, wi: torch.Tensor,
+                          wo: torch.Tensor) -> torch.Tensor:
+        """Specular transfer ``f_s(n, ωi, ωo) max(n·ωi, 0)``, ``(N, C)`` (subclasses)."""
+        return torch.zeros(normal.shape[0], self.kd.numel(), dtype=normal.dtype,
+                           device=normal.device)
+
+    def eval_cos(self, normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        r"""Transfer function :math:`f(n,\omega_i,\omega_o)\max(n\cdot\omega_i, 0)`, ``(N, C)``.
+
+        ``normal, wi, wo``: ``(N, 3)`` unit vectors in one frame, ``wi`` toward the light,
+        ``wo`` toward the viewer. Under a distant light delivering irradiance ``E`` the
+        reflected radiance is ``E · eval_cos``.
+        """
+        cos_i = (normal * wi).sum(-1, keepdim=True).clamp_min(0.0)
+        out = cos_i * self._c("kd", normal) / math.pi
+        if self.has_specular and not self.delta:
+            out = out + self.eval_specular_cos(normal, wi, wo)
+        return out
+
+    def eval(self, normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        """BRDF value ``f(n, ωi, ωo)`` ``(N, C)`` in sr⁻¹.
+
+        0 where ``n·ωi ≤ 0``; a Dirac lobe contributes 0 at every finite pair of directions.
+        """
+        cos_i = (normal * wi).sum(-1, keepdim=True)
+        b = self.eval_cos(normal, wi, wo)
+        return torch.where(cos_i > 1e-9, b / cos_i.clamp_min(1e-9), torch.zeros_like(b))
+
+    def sample_specular(self, normal: torch.Tensor, wo: torch.Tensor, u: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Importance-sample incident directions for the specular lobe.
+
+        ``u``: ``(N, S, 2)`` uniform numbers in [0, 1). Returns ``(wi (N, S, 3), pdf (N, S))``
+        with ``pdf`` the solid-angle density (sr⁻¹) of the directions drawn, or ``None`` when the
+        model has no sampler (the renderer then integrates by texel quadrature). Only the
+        variance of the reference render depends on it, never its expected value.
+        """
+        return None
+
+    # ---------------------------------------------------------------- SH domain
+    def sh_filter(self, lmax: int) -> torch.Tensor:
+        """``(lmax+1,)`` specular ``Λ_l ρ̂_l`` about ``r`` *without* its scale, as the fits use it.
+
+        Zero for a model without a specular part.
+        """
+        return torch.zeros(lmax + 1, dtype=torch.float64)
+
+    def sh_filter_exact(self, lmax: int) -> torch.Tensor:
+        """Return the exact filter at normal exitance (quadrature).
+
+        Equals :meth:`sh_filter` unless a model overrides it (R&H's approximations differ from
+        the true lobe).
+        """
+        return self.sh_filter(lmax)
+
+    def predicted_lstar(self, eps: float) -> float | None:
+        """Analytic ``l*(ε)``: first band where the specular filter falls below ``ε``.
+
+        ``None`` for a filter that never falls (mirror) or a model without a prediction.
+        """
+        return None
+
+    def diffuse_only(self) -> BRDFModel:
+        """Return the Lambertian part of this material as a model."""
+        return make_brdf("lambertian", kd=self.kd)
+
+
+# -------------------------------------------------------------------------------- registry
+_REGISTRY: dict[str, type[BRDFModel]] = {}
+_ALIASES: dict[str, str] = {}
+
+
+def register_brdf_model(cls: type[BRDFModel]) -> type[BRDFModel]:
+    """Class decorator: add ``cls`` (and its ``aliases``) to the registry; returns ``cls``."""
+    if not cls.name:
+        raise ValueError(f"{cls.__name__} has no name")
+    if not cls.PARAMETERS or cls.PARAMETERS[0].name != "kd":
+        raise ValueError(f"{cls.__name__}: the first parameter must be 'kd'")
+    _REGISTRY[cls.name] = cls
+    for a in cls.aliases:
+        _ALIASES[a] = cls.name
+    return cls
+
+
+def unregister_brdf_model(name: str) -> None:
+    """Remove a model (and its aliases) from the registry (tests registering toy models)."""
+    cls = _REGISTRY.pop(name, None)
+    for a in getattr(cls, "aliases", ()):
+        _ALIASES.pop(a, None)
+
+
+def brdf_model_names(aliases: bool = True) -> tuple[str, ...]:
+    """Return the registered names in registration order (aliases after them)."""
+    return tuple(_REGISTRY) + (tuple(_ALIASES) if aliases else ())
+
+
+class _Names(Sequence):
+    """Live, read-only view of :func:`brdf_model_names`.
+
+    ``name in BRDF_NAMES`` sees models registered at run time.
+    """
+
+    def __getitem__(self, i):
+        return brdf_model_names()[i]
+
+    def __len__(self):
+        return len(brdf_model_names())
+
+    def __contains__(self, x):
+        return x in _REGISTRY or x in _ALIASES
+
+    def __repr__(self):
+        return repr(brdf_model_names())
+
+    __str__ = __repr__
+
+
+BRDF_NAMES = _Names()
+
+
+def get_brdf_model(name: str) -> type[BRDFModel]:
+    """Return the class registered as ``name`` (or an alias); unknown names list the valid ones."""
+    key = _ALIASES.get(name, name)
+    if key not in _REGISTRY:
+        raise ValueError(f"unknown BRDF model {name!r}; valid: {', '.join(brdf_model_names())}")
+    return _REGISTRY[key]
+
+
+def make_brdf(name: str, **params) -> BRDFModel:
+    """Instance of model ``name`` with ``params`` (missing ones take their defaults)."""
+    return get_brdf_model(name)(**params)
+
+
+def brdf_from_json(doc: dict) -> BRDFModel:
+    """Inverse of :meth:`BRDFModel.to_json` (``{"model": ..., "parameters": {...}}``)."""
+    return make_brdf(doc["model"], **doc.get("parameters", {}))
+
+
+def as_brdf_model(obj) -> BRDFModel:
+    """Return a :class:`BRDFModel` given one, or anything with a ``brdf`` attribute.
+
+    (:class:`brdfcap.fit.brdf_models.BRDFSpec` has one.)
+    """
+    if isinstance(obj, BRDFModel):
+        return obj
+    m = getattr(obj, "brdf", None)
+    if isinstance(m, BRDFModel):
+        return m
+    raise TypeError(f"expected a registered BRDF model or a BRDFSpec, got {type(obj).__name__}")
+
+
+def orthonormal_basis(axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two unit tangents ``(t, b)`` completing ``axis`` ``(..., 3)`` to a right-handed frame.
+
+    Duff et al. 2017, "Building an orthonormal basis, revisited" (JCGT 6(1)), listing 3.
+    """
+    x, y, z = axis.unbind(-1)
+    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], -1)
+    bb = torch.stack([b, sign + y * y * a, -y], -1)
+    return t, bb

@@ -1,0 +1,179 @@
+"""Reference renderer (issue #13): analytic cases, consistency of its quadratures, exact lights.
+
+Every expected value here comes from a code path other than the one under test: R&H 2001's
+analytic irradiance, the probe's texel values, brute-force texel quadrature of the BRDF's
+point evaluation, or the SH-independent directional forward model.
+"""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from brdfcap.capture.reference import LatLongProbe, render_environment, render_lights
+from brdfcap.fit import envmap
+from brdfcap.fit.brdf import make_brdf
+from brdfcap.fit.brdf.microfacet import Beckmann
+from brdfcap.fit.brdf.phong import Phong
+from brdfcap.fit.brdf_models import BRDFSpec, render_directional
+from brdfcap.fit.datasets import SH_PRESETS
+from brdfcap.fit.render import irradiance_sh
+
+
+def _dirs(n, seed=0, hemisphere=False):
+    g = torch.Generator().manual_seed(seed)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+    if hemisphere:
+        d[:, 2] = d[:, 2].abs() + 0.2
+        d = torch.nn.functional.normalize(d, dim=-1)
+    return d
+
+
+def _smooth_probe(h=16, w=32, seed=1):
+    """A positive probe with structure at all of its scales (a blurred random field + sky)."""
+    g = torch.Generator().manual_seed(seed)
+    img = torch.rand(h, w, 3, generator=g, dtype=torch.float64)
+    img = 0.5 * img + 0.5 * img.roll(1, 1)
+    return img + torch.linspace(1.0, 0.2, h, dtype=torch.float64)[:, None, None]
+
+
+REFERENCE = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference"
+if not REFERENCE.is_dir():  # a git worktree beside the main checkout (as tests/test_envmap.py)
+    REFERENCE = Path("/work/shared/reference")
+
+
+def _lambertian_vs_rh(light, n):
+    img = envmap.reconstruct_envmap(light, 128, 256)
+    kd = torch.tensor([0.8, 0.6, 0.4], dtype=torch.float64)
+    truth = irradiance_sh(n, light) * kd / math.pi
+    b, info = render_environment(make_brdf("lambertian", kd=kd), n, n,
+                                 LatLongProbe(img, "cubic"), rel_tol=1e-4, return_info=True)
+    assert info["converged"] and info["terms"]["diffuse"]["max_rel_err"] <= 1e-4
+    return b, truth
+
+
+@pytest.mark.skipif(not (REFERENCE / "probes" / "grace.hdr").is_file(),
+                    reason="needs ../shared/reference/probes/grace.hdr (real HDR probe)")
+def test_lambertian_equals_rh_irradiance_for_band_limited_probe():
+    """R&H 2001 eq. 13: E(n) = Σ Â_l L_lm Y_lm(n) is exact for lighting band-limited to l = 2.
+    The Grace Cathedral probe projected to lmax 2 and reconstructed as a 128×256 image (cubic
+    interpolation): every pixel within 1e-4 relative.
+    """
+    light = envmap.project_envmap(envmap.read_envmap(REFERENCE / "probes" / "grace.hdr")
+                                  [..., :3].double(), 2)
+    b, truth = _lambertian_vs_rh(light, _dirs(300))
+    rel = ((b - truth).abs() / truth.abs()).max()
+    assert rel < 1e-4, f"max relative error {rel:.2e}"
+
+
+def test_lambertian_equals_rh_irradiance_for_sh_preset():
+    """Same check without reference data, on R&H's published lmax-2 Grace coefficients. Their
+    irradiance rings negative near one pole, so the error is relative to the largest value.
+    """
+    light = torch.as_tensor(np.asarray(SH_PRESETS["grace-rh2001"]), dtype=torch.float64)
+    b, truth = _lambertian_vs_rh(light, _dirs(300))
+    rel = (b - truth).abs().max() / truth.abs().max()
+    assert rel < 1e-4, f"max error {rel:.2e} of the largest radiance"
+
+
+def test_white_furnace_lambertian():
+    """Constant unit radiance: a white Lambertian surface reflects exactly 1 (∫ cos/π dω = 1)."""
+    n = _dirs(50, seed=3)
+    b = render_environment(make_brdf("lambertian", kd=[1.0]), n, n,
+                           torch.ones(32, 64, 1, dtype=torch.float64), rel_tol=1e-5)
+    np.testing.assert_allclose(b.numpy(), 1.0, rtol=2e-5)
+
+
+class _NoSamplerPhong(Phong):
+    """The same lobe without importance sampling: the renderer falls back to texel quadrature."""
+
+    name = "test-phong-quadrature"
+
+    def sample_specular(self, normal, wo, u):
+        return None
+
+
+class _NoSamplerBeckmann(Beckmann):
+    name = "test-beckmann-quadrature"
+
+    def sample_specular(self, normal, wo, u):
+        return None
+
+
+@pytest.mark.parametrize("sampled,quad,params", [
+    (Phong, _NoSamplerPhong, {"kd": [0.0] * 3, "ks": [1.0] * 3, "s": 8.0}),
+    (Beckmann, _NoSamplerBeckmann, {"kd": [0.0] * 3, "f0": [0.9, 0.6, 0.3], "sigma": 0.4}),
+])
+def test_importance_sampling_agrees_with_texel_quadrature(sampled, quad, params):
+    """Sampler changes the variance only: RQMC importance sampling of the lobe equals brute-force
+    quadrature of the point evaluation over every texel, within the stated tolerances.
+    """
+    probe = LatLongProbe(_smooth_probe())
+    n = _dirs(40, seed=5)
+    wo = torch.nn.functional.normalize(n + 0.6 * _dirs(40, seed=6), dim=-1)
+    wo = torch.where(((n * wo).sum(-1, keepdim=True) > 0.2), wo, n)
+    tol = 2e-3
+    a, ia = render_environment(sampled(**params), n, wo, probe, rel_tol=tol, return_info=True)
+    b, ib = render_environment(quad(**params), n, wo, probe, rel_tol=tol, return_info=True)
+    assert ia["terms"]["specular"]["method"] == "rqmc-importance"
+    assert ib["terms"]["specular"]["method"] == "texel-quadrature"
+    assert ia["converged"] and ib["converged"]
+    scale = torch.maximum(b.abs(), 0.01 * b.abs().median())
+    rel = ((a - b).abs() / scale).max()
+    assert rel < 4 * tol, f"max relative difference {rel:.2e}"
+
+
+def test_mirror_is_a_probe_lookup():
+    """A mirror at a texel-centre reflection direction shows that texel's value times ks."""
+    img = _smooth_probe()
+    dirs = envmap.latlong_directions(16, 32).reshape(-1, 3)[::7]
+    n = torch.nn.functional.normalize(dirs + torch.tensor([0.0, 0.0, 1.0],
+                                                          dtype=torch.float64), dim=-1)
+    n = n[(dirs[:, 2] > -0.8)]
+    r = dirs[(dirs[:, 2] > -0.8)]
+    wo = 2 * (n * r).sum(-1, keepdim=True) * n - r          # so that reflect(wo) = r
+    b = render_environment(make_brdf("mirror", kd=[0.0] * 3, ks=[0.5] * 3), n, wo, img)
+    idx = torch.arange(0, 16 * 32, 7)[(dirs[:, 2] > -0.8)]
+    np.testing.assert_allclose(b.numpy(), 0.5 * img.reshape(-1, 3)[idx].numpy(), rtol=1e-9)
+
+
+@pytest.mark.parametrize("spec", [
+    BRDFSpec("lambertian", kd=[0.6, 0.4, 0.2]),
+    BRDFSpec("phong", kd=[0.5, 0.3, 0.2], ks=[0.3, 0.3, 0.3], s=64.0),
+    BRDFSpec("microfacet", kd=[0.1, 0.1, 0.1], f0=[0.95, 0.64, 0.54], sigma=0.08),
+])
+def test_render_lights_matches_directional_forward_model(spec):
+    """Under distant lights the reference renderer is exact: E f cosθi, the same numbers as the
+    fits' directional forward model (both evaluate the closed-form BRDF).
+    """
+    n = _dirs(200, seed=7, hemisphere=True)
+    wi, wo = _dirs(200, seed=8, hemisphere=True), _dirs(200, seed=9, hemisphere=True)
+    e = torch.rand(200, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    np.testing.assert_allclose(render_lights(spec, n, wo, wi, e).numpy(),
+                               render_directional(spec, n, wo, wi, e).numpy(), rtol=1e-12,
+                               atol=1e-14)
+
+
+def test_render_lights_mirror_reflects_no_point_light():
+    m = make_brdf("mirror", kd=[0.2] * 3, ks=[1.0] * 3)
+    n = _dirs(20, seed=1, hemisphere=True)
+    b = render_lights(m, n, n, n, torch.ones(3, dtype=torch.float64))
+    np.testing.assert_allclose(b.numpy(), 0.2 / math.pi, rtol=1e-12)
+
+
+def test_channel_mismatch_is_a_clear_error():
+    with pytest.raises(ValueError, match="colour channels"):
+        render_environment(make_brdf("lambertian", kd=[1.0, 1.0]), _dirs(2), _dirs(2),
+                           torch.ones(4, 8, 3, dtype=torch.float64))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu():
+    probe = _smooth_probe()
+    n = _dirs(30, seed=4)
+    m = make_brdf("beckmann", kd=[0.3] * 3, f0=[0.5] * 3, sigma=0.3)
+    a = render_environment(m, n, n, probe, rel_tol=1e-3)
+    b = render_environment(m, n.cuda(), n.cuda(), probe, rel_tol=1e-3).cpu()
+    np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-2)
