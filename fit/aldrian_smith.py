@@ -392,11 +392,11 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
                       texture_mean: torch.Tensor | None = None,
                       texture_pcs: torch.Tensor | None = None,
                       colour=None, grayworld: float = 0.0, simplicity: float = 0.0,
-                      smoothness: float = 1e-2, edges: torch.Tensor | None = None,
+                      smoothness: float = 0.1, edges: torch.Tensor | None = None,
                       positions: torch.Tensor | None = None, albedo_level: float = 0.5,
                       albedo_prior: float = 1e-3, variance: torch.Tensor | None = None,
                       max_outer: int = 3, inner_iter: int = 20, refine_iter: int = 100,
-                      tol: float = 1e-14) -> AldrianSmithFit:
+                      tol: float = 1e-12) -> AldrianSmithFit:
     """Fit Aldrian & Smith's model (A&S eq. 1, module doc) to per-sample data.
 
     Parameters
