@@ -250,6 +250,7 @@ class AldrianSmithFit:
     converged: bool
     prediction: torch.Tensor  # (N, 3) in observed (camera) units
     chi2_reduced: float
+    chi2_channels: list[float]
     noise_source: str
     covariance: torch.Tensor  # global parameters (L observable, κ, x_h) [+ b]
     parameter_names: list[str]
@@ -269,20 +270,35 @@ class AldrianSmithFit:
                           self.lighting_radiance.abs() / self.lighting_stderr,
                           torch.zeros_like(self.lighting_radiance))
         ill = None
+        bands = []
+        l00 = float(self.lighting_radiance[0].abs().mean()) or 1.0
         for lb in range(self.lmax + 1):
             sel = band == lb
-            if not bool(self.determined[sel].all()) or float(snr[sel].median()) < 1.0:
+            det = bool(self.determined[sel].all())
+            bad = not det or float(snr[sel].median()) < 1.0
+            if bad and ill is None:
                 ill = lb
-                break
+            bands.append({"l": lb, "n_coefficients": int(sel.sum()),
+                          "determined_fraction": float(self.determined[sel].double().mean()),
+                          "median_rel_stderr": float(self.lighting_stderr[sel].median()) / l00
+                          if det else None,
+                          "median_snr": float(snr[sel].median()) if det else None,
+                          "singular_min": None, "singular_max": None, "condition": None,
+                          "resolution": "unobservable (Lambertian Â_l = 0)" if not det else
+                          "posterior covariance", "ill_conditioned": bad})
         se = [[v if math.isfinite(v) else None for v in row]
               for row in self.lighting_stderr.tolist()]
         return {"lmax": self.lmax, "sh": "rh2001-real", "frame": "world",
                 "coefficients": self.lighting_radiance.tolist(), "stderr": se,
-                "determined": self.determined.tolist(), "ill_conditioned_from_l": ill,
+                "determined": self.determined[:, None].expand(-1, 3).tolist(),
+                "ill_conditioned_from_l": ill,
+                "ill_conditioning_definition": "Aldrian & Smith: band l is ill-conditioned when "
+                "a coefficient is unobservable (odd l >= 3) or the band's median |L|/stderr < 1 "
+                "(posterior standard errors)", "bands": bands,
                 "unobservable_bands": self.unobservable_bands,
                 "unobservable_reason": "odd bands l >= 3: the clamped-cosine filter A_l is 0 "
                 "(R&H 2001 eq. 8); not seen by a Lambertian surface, set to 0, not estimated",
-                "chi2_reduced": self.chi2_reduced, "noise_source": self.noise_source,
+                "chi2_reduced": self.chi2_channels, "noise_source": self.noise_source,
                 "scale_fixing": self.ambiguities[0]["resolution"] if self.ambiguities else "",
                 "units": "camera units after M^-1(I - o)" + ("" if self.colour.identified else
                                                           " with M = I assumed (not identified)"),
@@ -708,6 +724,7 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
         a_eff = float((dd / np.maximum(Ha.diagonal(), 1e-300)).sum())
     dof = max(n_obs - G - a_eff, 1.0)
     chi2 = rss / dof
+    chi2_c = ((w * (y - pred_y @ Mm.T - off) ** 2).sum(0) / (dof / 3)).tolist()
     s2 = chi2 if variance is None else max(1.0, chi2)
     Sinv = torch.linalg.inv(Sg)
     cov_g = s2 * Sinv
@@ -789,7 +806,8 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
         specular_low=kap.clone(), specular_low_stderr=se_g[iK],
         specular_high=xh.clone(), specular_high_stderr=se_g[iX].reshape(3, kh).T,
         colour=col, iterations=iters, converged=converged, prediction=pred,
-        chi2_reduced=chi2, noise_source=noise_source, covariance=cov, parameter_names=names,
+        chi2_reduced=chi2, chi2_channels=chi2_c, noise_source=noise_source, covariance=cov,
+        parameter_names=names,
         priors={"grayworld": grayworld, "simplicity": simplicity,
                 "smoothness": None if texture else smoothness,
                 "albedo_prior": None if texture else albedo_prior,
@@ -798,12 +816,13 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
 
 
 #: Pipeline mode fits at most this many samples (an even subsample; all are predicted).
-PIPELINE_MAX_SAMPLES = 6000
+PIPELINE_MAX_SAMPLES = 3000
 
 
 def fit_aldrian_smith_samples(samples, lmax: int = 2, colour=None, texture=None,
                               specular_lmax: int | None = None, grayworld: float = 1e-3,
-                              simplicity: float = 1e-3) -> AldrianSmithFit:
+                              simplicity: float = 1e-3, refine_iter: int = 25
+                              ) -> AldrianSmithFit:
     """Pipeline entry: per-pixel samples, grayworld prior on.
 
     Free albedo with the smoothness prior unless a texture model ``(mean (N, 3), components
@@ -821,7 +840,7 @@ def fit_aldrian_smith_samples(samples, lmax: int = 2, colour=None, texture=None,
         kw = {"texture_mean": texture[0], "texture_pcs": texture[1]}
     f = fit_aldrian_smith(samples.normal[idx], samples.reflected[idx], samples.radiance[idx],
                           lmax=lmax, specular_lmax=ls, colour=colour, grayworld=grayworld,
-                          simplicity=simplicity, positions=pos,
+                          simplicity=simplicity, positions=pos, refine_iter=refine_iter,
                           variance=None if samples.variance is None else samples.variance[idx],
                           **kw)
     if len(idx) < N:  # predict every sample: albedo by nearest fitted sample

@@ -208,11 +208,26 @@ def problem_both(samples, cfg, opts) -> ProblemResult:
 
 
 def problem_aldrian_smith(samples, cfg, opts) -> ProblemResult:
-    """Problem 4: Aldrian & Smith's photometric model (:mod:`brdfcap.fit.aldrian_smith`)."""
-    from .aldrian_smith import fit_aldrian_smith_samples
+    """Problem 4: Aldrian & Smith's photometric model (:mod:`brdfcap.fit.aldrian_smith`).
+
+    Lighting to ``--lmax`` (any ``lmax ≥ 0``; odd bands ≥ 3 reported unobservable). The colour
+    transform counts as identified when the capture's ``[colour]`` ColorChecker correction was
+    applied at load (the views are then in the chart's working space, ``M = I``); otherwise it
+    is reported as not identified (``M = I, o = 0`` assumed).
+    """
+    from .aldrian_smith import ColourTransform, fit_aldrian_smith_samples
 
     _need_env(cfg)
-    res = fit_aldrian_smith_samples(samples, lmax=min(opts.lmax, 2), rule=opts.rule)
+    doc = getattr(cfg, "raw", None) or {}
+    colour = None
+    if doc.get("colour", doc.get("color")):
+        colour = ColourTransform(
+            gain=torch.ones(3, dtype=torch.float64), contrast=1.0,
+            offset=torch.zeros(3, dtype=torch.float64), identified=True,
+            source="ColorChecker correction applied at load ([colour] in capture.toml): the "
+                   "views are in the chart's working space, M = I (its uncertainty is not "
+                   "propagated)")
+    res = fit_aldrian_smith_samples(samples, lmax=opts.lmax, colour=colour)
     return ProblemResult(prediction=res.prediction, results=res.to_results(),
                          summary=res.summary())
 

@@ -150,3 +150,16 @@ def test_problem_decomposition_needs_sources(captures, tmp_path):
                                     "--problem", "decomposition"])
     assert res.exit_code != 0
     assert "Traceback" not in res.output and "capture.toml" in res.output
+
+
+@pytest.mark.parametrize("lmax", [pytest.param(2, marks=pytest.mark.slow), 4])
+def test_problem_aldrian_smith_honours_lmax(captures, tmp_path, lmax):
+    """`--problem aldrian-smith --lmax L`: (L+1)² finite lighting rows per channel, a
+    `lighting` block, odd bands ≥ 3 unobservable, and M reported not identified (no chart)."""
+    r = _run(captures["env"], tmp_path / "o", "--problem", "aldrian-smith", "--lmax", str(lmax))
+    lt = r["lighting"]
+    assert lt["lmax"] == lmax and len(lt["coefficients"]) == (lmax + 1) ** 2
+    assert all(v is not None and v == v for row in lt["coefficients"] for v in row)
+    assert lt["unobservable_bands"] == list(range(3, lmax + 1, 2))
+    assert r["aldrian_smith"]["colour_transform"]["identified"] is False
+    assert "free per-sample albedo" in r["aldrian_smith"]["albedo_model"]
