@@ -154,8 +154,11 @@ def test_problem_decomposition_needs_sources(captures, tmp_path):
 
 @pytest.mark.parametrize("lmax", [pytest.param(2, marks=pytest.mark.slow), 4])
 def test_problem_aldrian_smith_honours_lmax(captures, tmp_path, lmax):
-    """`--problem aldrian-smith --lmax L`: (L+1)² finite lighting rows per channel, a
-    `lighting` block, odd bands ≥ 3 unobservable, and M reported not identified (no chart)."""
+    """`--problem aldrian-smith --lmax L` honours L.
+
+    (L+1)² finite lighting rows per channel, a `lighting` block, odd bands ≥ 3 unobservable,
+    and M reported not identified (no chart).
+    """
     r = _run(captures["env"], tmp_path / "o", "--problem", "aldrian-smith", "--lmax", str(lmax))
     lt = r["lighting"]
     assert lt["lmax"] == lmax and len(lt["coefficients"]) == (lmax + 1) ** 2
