@@ -794,6 +794,12 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
             "resolution": ("identified by " + col.source) if col.identified else
             ("NOT identified: no colour reference; M = I, o = 0 assumed, so the lighting "
              "carries the camera's gain and white balance and the offset is taken as 0")}]
+    if not texture:
+        amb.append({"name": "specular DC (kappa_0) vs free albedo",
+                    "resolution": "weak: a constant specular term equals an albedo change "
+                    "∝ 1/shading, which a smooth free albedo can absorb; only the smoothness "
+                    "prior separates them (kappa_1, kappa_2 vary with r and separate better); "
+                    "give a texture model for a reliable kappa_0"})
     if unobservable:
         amb.append({"name": "odd lighting bands >= 3",
                     "resolution": f"bands {unobservable} unobservable from a Lambertian "
