@@ -453,6 +453,26 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
     -------
     AldrianSmithFit
     """
+    try:
+        return _fit(**{k: v for k, v in locals().items()})
+    except (torch.linalg.LinAlgError, RuntimeError) as e:
+        if isinstance(e, FitError) or "singular" not in str(e):
+            raise
+        raise FitError(f"Aldrian & Smith: the samples do not determine the model (rank-deficient "
+                       f"normal equations at lmax = {lmax}, specular_lmax = {specular_lmax}); "
+                       "lower --lmax or add views with more distinct normals") from None
+
+
+def _fit(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
+         lmax: int = 2, specular_lmax: int = 4,
+         texture_mean: torch.Tensor | None = None,
+         texture_pcs: torch.Tensor | None = None,
+         colour=None, grayworld: float = 0.0, simplicity: float = 0.0,
+         smoothness: float = 0.1, edges: torch.Tensor | None = None,
+         positions: torch.Tensor | None = None, albedo_level: float = 0.5,
+         albedo_prior: float = 1e-3, variance: torch.Tensor | None = None,
+         max_outer: int = 3, inner_iter: int = 20, refine_iter: int = 100,
+         tol: float = 1e-12) -> AldrianSmithFit:
     n = torch.nn.functional.normalize(torch.as_tensor(normal).to(_F64), dim=-1)
     r = torch.nn.functional.normalize(torch.as_tensor(reflected).to(_F64), dim=-1)
     obs = torch.as_tensor(radiance).to(_F64)
