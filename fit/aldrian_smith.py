@@ -814,12 +814,14 @@ def _fit(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
             "resolution": ("identified by " + col.source) if col.identified else
             ("NOT identified: no colour reference; M = I, o = 0 assumed, so the lighting "
              "carries the camera's gain and white balance and the offset is taken as 0")}]
-    if not texture:
-        amb.append({"name": "specular DC (kappa_0) vs free albedo",
-                    "resolution": "weak: a constant specular term equals an albedo change "
-                    "∝ 1/shading, which a smooth free albedo can absorb; only the smoothness "
-                    "prior separates them (kappa_1, kappa_2 vary with r and separate better); "
-                    "give a texture model for a reliable kappa_0"})
+    amb.append({"name": "specular DC (kappa_0) vs albedo level",
+                "resolution": "the tied specular DC κ_0 L_00 Y_00 is a constant; it is "
+                "separated from the diffuse DC only through the albedo's spatial variation "
+                + ("(the texture model's components): with a nearly uniform albedo only "
+                   "(albedo + κ_0)·L_00 is determined" if texture else
+                   "— a smooth free albedo can absorb it (an albedo change ∝ 1/shading), only "
+                   "the smoothness prior separates them; give a texture model for a reliable "
+                   "κ_0") + "; κ_1, κ_2 vary with r and separate well"})
     if unobservable:
         amb.append({"name": "odd lighting bands >= 3",
                     "resolution": f"bands {unobservable} unobservable from a Lambertian "

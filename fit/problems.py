@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field
 
 import torch
+from brdfcap.capture.texture_model import texture_model_from_config
 
 from brdfcap.core.errors import FitError
 
@@ -213,7 +214,9 @@ def problem_aldrian_smith(samples, cfg, opts) -> ProblemResult:
     Lighting to ``--lmax`` (any ``lmax ≥ 0``; odd bands ≥ 3 reported unobservable). The colour
     transform counts as identified when the capture's ``[colour]`` ColorChecker correction was
     applied at load (the views are then in the chart's working space, ``M = I``); otherwise it
-    is reported as not identified (``M = I, o = 0`` assumed).
+    is reported as not identified (``M = I, o = 0`` assumed). A ``[texture_model]`` (an
+    ``.npz`` read by :mod:`brdfcap.capture.texture_model`) gives the albedo model; without
+    one the albedo is free per sample with the smoothness prior.
     """
     from .aldrian_smith import ColourTransform, fit_aldrian_smith_samples
 
@@ -227,7 +230,14 @@ def problem_aldrian_smith(samples, cfg, opts) -> ProblemResult:
             source="ColorChecker correction applied at load ([colour] in capture.toml): the "
                    "views are in the chart's working space, M = I (its uncertainty is not "
                    "propagated)")
-    res = fit_aldrian_smith_samples(samples, lmax=opts.lmax, colour=colour)
+    texture = None
+    tm = texture_model_from_config(doc, cfg.root, cfg.toml_path)  # [texture_model] file
+    if tm is not None:
+        if samples.position is None:
+            raise FitError("[texture_model] needs a mesh capture (per-sample world positions); "
+                           "this capture has a normal map", cfg.toml_path)
+        texture = tm.at(samples.position)
+    res = fit_aldrian_smith_samples(samples, lmax=opts.lmax, colour=colour, texture=texture)
     return ProblemResult(prediction=res.prediction, results=res.to_results(),
                          summary=res.summary())
 

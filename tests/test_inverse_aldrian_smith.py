@@ -128,7 +128,7 @@ def test_grayworld_prior_and_free_albedo_are_finite_and_report_ambiguities():
     assert "grayworld" in colour["resolution"]
     # the grayworld prior pulls the channels of the lighting together
     assert "free per-sample albedo, smoothness prior" in f.albedo_model
-    assert "kappa_0" in " ".join(a["name"] for a in f.ambiguities)
+    assert any("kappa_0" in a["name"] for a in f.ambiguities)
     f0 = fit_aldrian_smith(n, r, img, grayworld=0.0, simplicity=1e-3, refine_iter=10)
     spread = lambda x: (x - x.mean(1, keepdim=True)).abs().mean()  # noqa: E731
     assert spread(f.lighting) < spread(f0.lighting)
