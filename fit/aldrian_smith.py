@@ -849,12 +849,14 @@ PIPELINE_MAX_SAMPLES = 3000
 
 def fit_aldrian_smith_samples(samples, lmax: int = 2, colour=None, texture=None,
                               specular_lmax: int | None = None, grayworld: float = 1e-3,
-                              simplicity: float = 1e-3, refine_iter: int = 25
-                              ) -> AldrianSmithFit:
+                              simplicity: float = 1e-3, refine_iter: int = 25,
+                              rule: str | None = None) -> AldrianSmithFit:
     """Pipeline entry: per-pixel samples, grayworld prior on.
 
     Free albedo with the smoothness prior unless a texture model ``(mean (N, 3), components
-    (P, N, 3))`` is given; ``colour`` as in :func:`fit_aldrian_smith`.
+    (P, N, 3))`` is given; ``colour`` as in :func:`fit_aldrian_smith`. ``rule`` (the problems'
+    common ``--rule``) is recorded but not used: A&S's prior weights are fixed, not chosen by
+    a regularisation rule.
     """
     N = len(samples)
     ls = max(4, lmax) if specular_lmax is None else specular_lmax
@@ -890,4 +892,5 @@ def fit_aldrian_smith_samples(samples, lmax: int = 2, colour=None, texture=None,
                                   * f.lighting_radiance[:kt]) + Sx[:, bs > tl] @ f.specular_high
         f.prediction = ((shade * alb + spec) @ f.colour.M.T + f.colour.offset)
         f.albedo_model += f" (fitted on an even subsample of {len(idx)} of {N} samples)"
+    f.priors["rule"] = f"{rule} (not used: fixed prior weights)" if rule else None
     return f
