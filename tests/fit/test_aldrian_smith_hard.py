@@ -6,11 +6,12 @@ import math
 
 import pytest
 import torch
-from brdfcap.core.errors import FitError
 from brdfcap.fit.aldrian_smith import fit_aldrian_smith
 from brdfcap.fit.brdf_models import diffuse_filter
 from brdfcap.fit.datasets import GRACE_RH2001
 from brdfcap.fit.sh import band_of_index, real_sh
+
+from brdfcap.core.errors import FitError
 
 F64 = torch.float64
 GRACE = torch.tensor(GRACE_RH2001, dtype=F64)
