@@ -19,6 +19,7 @@ import torch
 
 from brdfcap.capture.load import load_capture
 from brdfcap.capture.probes import known_sh_lighting
+from brdfcap.capture.texture_model import texture_model_from_config
 from brdfcap.capture.types import Capture
 from brdfcap.core.atomic import write_json_atomic
 from brdfcap.core.errors import FitError
@@ -98,7 +99,10 @@ def known_of(capture: Capture, options: RunOptions) -> Known:
                  lighting_sh=light,
                  sources=None if src is None else torch.as_tensor(src, dtype=torch.float64),
                  noise=cfg.noise, geometry_source=cfg.geometry_source,
-                 image_shape=(cfg.camera.height, cfg.camera.width))
+                 image_shape=(cfg.camera.height, cfg.camera.width),
+                 colour_corrected=cfg.colour is not None,
+                 texture_model=texture_model_from_config(cfg.raw, cfg.root, cfg.toml_path)
+                 if options.problem == "aldrian-smith" else None)
 
 
 def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitResult:

@@ -36,7 +36,8 @@ MAX_INPUT_BYTES = 4 << 30
 _SPECIAL_ROOTS = (Path("/proc"), Path("/sys"), Path("/dev"))
 #: Keys of ``capture.toml`` that name input files (``[i]`` = every entry of an array of tables).
 PATH_KEYS = ("geometry.mesh", "geometry.normal_map", "geometry.mask", "geometry.scan",
-             "lighting.probe", "colour.checker_image", "color.checker_image",
+             "lighting.probe", "lighting.coefficients", "texture_model.file",
+             "colour.checker_image", "color.checker_image",
              "raw.dark_frame", "raw.flat_field", "raw.noise_profile", "raw.noise_darks",
              "raw.noise_flats", "images[i].file", "images[i].mask", "images[i].raw.bracket",
              "images[i].raw.dark_frame", "images[i].raw.flat_field",

@@ -1,30 +1,44 @@
 r"""Problem 4: Aldrian & Smith's multilinear photometric model (seed ``001``).
 
-Aldrian & Smith, "Inverse rendering with a morphable model: a multilinear approach", BMVC 2011.
-
-Per sample (vertex) ``k`` and colour channel ``c``:
+Aldrian & Smith, "Inverse rendering with a morphable model: a multilinear approach", BMVC 2011
+(``../shared/seeds/001_*``). The seed is the paper's extended abstract; it displays one equation,
+the complete model (cited here as **A&S eq. 1**), per vertex ``k`` and colour channel:
 
 .. math:: I_k = M\,[(U_k l) \circ (T_k b + \bar t_k) + S_k x] + o
 
-* ``M = diag(g) (c_t I + (1 − c_t) 1 w^T)``, ``o``: the camera's colour transform — gains ``g``,
-  contrast ``c_t`` (mixing toward luminance with weights ``w`` = Rec. 709 luma), offset ``o`` —
-  applied first (given, or estimated by :func:`fit_colour_transform`) and inverted so the rest
-  sees ``y = M⁻¹(I − o)``;
-* ``U_k``: the SH basis at the normal with the Lambertian filter folded in (``Â_l/π Y_lm(n)``),
-  ``l``: lighting per channel (9 coefficients for ``lmax = 2``);
-* ``T_k b + t̄_k``: diffuse albedo from a linear texture model (mean + principal components); with
-  no model, one free albedo per sample *plus* a simplicity prior toward the mean albedo (one
-  observation per sample cannot separate albedo and lighting otherwise);
-* ``S_k x``: specular term on the SH basis of the reflected view direction ``r_k``; its
-  low-frequency part ``l ≤ lmax`` is tied to the lighting, ``x_lm = κ_l L_lm`` with
-  ``L_lm = l_lm / Â_l`` (3 free parameters ``κ_0..κ_2`` for an isotropic specular lobe, shared by
-  the channels), higher orders ``lmax < l ≤ lmax_s`` unconstrained (with a simplicity prior).
+Conventions (frames, SH normalisation, units) are those of ``docs/conventions.md``. Here:
 
-Each sub-problem is convex and solved in closed form (:func:`brdfcap.fit.solve.solve_wls` or
-small normal equations): lighting given albedo (with the *grayworld* prior ``λ_g Σ ||l_c −
-l̄||²``, white illumination, coupling the channels), texture coefficients given lighting (prior
-``λ_b ||b||²``), specular given both. The diffuse part is bilinear and solved by alternation;
-the texture mean fixes the albedo/lighting scale (no model: the mean albedo prior does).
+* ``M = diag(g) (c_t I + (1 − c_t) 1 wᵀ)`` and ``o`` (gain ``g``, contrast ``c_t`` mixing toward
+  Rec. 709 luma ``w``, offset): A&S "estimated at the beginning of the inverse rendering
+  process". **Identifiable only from a reference the capture provides** — a colour chart with
+  known reflectances (:class:`ColourReference`, :func:`estimate_colour_transform`). From the
+  object alone, a red pixel is "skin colour, red illumination, or an increased camera
+  sensitivity in the red channel" (A&S, introduction): without a reference ``M = I, o = 0`` is
+  *assumed*, and the results say so (``colour_transform.identified = false``).
+* ``U_k l``: the SH basis at the normal *with the Lambertian filter folded in*, ``(U_k)_lm =
+  Â_l/π Y_lm(n_k)`` (R&H 2001 eq. 8), so the unknown is the radiance ``L_lm`` itself. Odd bands
+  ``l ≥ 3`` have ``Â_l = 0``: those columns are dropped, the coefficients reported as
+  unobservable (``determined = false``, coefficient 0, no standard error) — never divided by.
+* ``T_k b + t̄_k``: diffuse albedo from a linear texture model (mean + principal components per
+  vertex). Without one, a free albedo per sample with a smoothness prior over the surface
+  (graph Laplacian of a k-nearest-neighbour graph of positions, or of given edges) and a weak
+  prior toward a stated level that fixes the albedo × lighting scale; which one was used is in
+  the results (``albedo_model``).
+* ``S_k x``: specular term on the SH basis of the reflected view direction ``r_k``. A&S, "Specular
+  Component": the low orders are tied to the lighting, ``x_lm = κ_l L_lm`` for ``l ≤ 2`` — "the
+  isotropic specular reflection function has only 3 free parameters" ``κ_0..κ_2``, shared by the
+  channels — and the higher orders ``2 < l ≤ specular_lmax`` are free per channel (the paper's
+  "unconstrained problem", with the simplicity prior here).
+
+Order of the steps (A&S): (1) colour transform from the reference; (2) ``l`` and ``b`` bilinearly,
+ignoring the specular part, with the *grayworld* prior ``λ_g Σ_c ||L_c − L̄||²`` (white light) and
+the *simplicity* prior ``λ_s ||b||²``; (3) the 3 tied specular parameters, then the free higher
+orders. Every step is a convex least-squares solve. The paper's order alone is biased when a
+specular term is present (step 2 ignores it), so block-coordinate rounds over all blocks and a
+joint Gauss-Newton / Levenberg-Marquardt refinement of the same cost follow; the posterior
+covariance is the inverse Gauss-Newton Hessian of that cost (priors as Gaussian information),
+scaled by the residual variance, plus the colour transform's covariance propagated through
+``y = M⁻¹(I − o)`` to first order.
 """
 
 from __future__ import annotations
@@ -32,6 +46,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 import torch
 
 from brdfcap.core.errors import FitError
@@ -41,24 +58,30 @@ from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights
 
-__all__ = ["AldrianSmithFit", "fit_aldrian_smith", "fit_aldrian_smith_samples",
-           "colour_transform_matrix", "fit_colour_transform", "LUMA"]
+__all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "fit_aldrian_smith",
+           "fit_aldrian_smith_samples", "colour_transform_matrix", "fit_colour_transform",
+           "estimate_colour_transform", "knn_edges", "LUMA", "TIED_SPECULAR_LMAX"]
 
 #: Rec. 709 luma weights (contrast mixes toward this grey).
 LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
+#: Specular bands tied to the lighting (A&S: "only 3 free parameters", l = 0, 1, 2).
+TIED_SPECULAR_LMAX = 2
+
+_F64 = torch.float64
+
 
 def colour_transform_matrix(gain: torch.Tensor, contrast: float) -> torch.Tensor:
     """``M = diag(g) (c I + (1 − c) 1 wᵀ)`` (Aldrian & Smith's gain and contrast)."""
-    g = torch.as_tensor(gain, dtype=torch.float64)
-    eye = torch.eye(3, dtype=torch.float64)
-    return torch.diag(g) @ (contrast * eye + (1 - contrast) * torch.ones(3, 1, dtype=torch.float64)
+    g = torch.as_tensor(gain, dtype=_F64)
+    eye = torch.eye(3, dtype=_F64)
+    return torch.diag(g) @ (contrast * eye + (1 - contrast) * torch.ones(3, 1, dtype=_F64)
                             @ LUMA[None, :])
 
 
 def fit_colour_transform(observed: torch.Tensor, reference: torch.Tensor
                          ) -> tuple[torch.Tensor, float, torch.Tensor, float]:
-    """Gains, contrast and offset mapping a reference rendering to observed values.
+    """Gains, contrast and offset mapping reference values to observed values.
 
     ``observed ≈ M reference + o``: for a fixed contrast the model is linear in ``(g_c, o_c)``
     per channel; the contrast is found by a bounded 1-D search (variable projection).
@@ -70,8 +93,8 @@ def fit_colour_transform(observed: torch.Tensor, reference: torch.Tensor
     """
     from scipy.optimize import minimize_scalar
 
-    obs = observed.to(torch.float64)
-    ref = reference.to(torch.float64)
+    obs = torch.as_tensor(observed, dtype=_F64)
+    ref = torch.as_tensor(reference, dtype=_F64)
     ok = torch.isfinite(obs).all(-1) & torch.isfinite(ref).all(-1)
     obs, ref = obs[ok], ref[ok]
 
@@ -93,309 +116,784 @@ def fit_colour_transform(observed: torch.Tensor, reference: torch.Tensor
 
 
 @dataclass
-class AldrianSmithFit:
-    """Result of :func:`fit_aldrian_smith`."""
+class ColourReference:
+    """Camera values of reference surfaces with known linear reflectance (e.g. a ColorChecker).
 
-    lighting: torch.Tensor  # (9, 3) diffuse lighting coefficients l (irradiance-filtered: Â_l L)
-    lighting_radiance: torch.Tensor  # (9, 3) L_lm = l_lm / Â_l
+    ``observed ≈ M reference + o`` (A&S eq. 1 with the bracket replaced by the known values):
+    the chart must be lit like the reference values assume (the chart's irradiance is folded
+    into ``M``; the lighting is then in units of it).
+    """
+
+    observed: torch.Tensor  # (P, 3) camera values (patch means)
+    reference: torch.Tensor  # (P, 3) reference linear RGB
+    variance: torch.Tensor | None = None  # (P, 3) variance of each patch mean
+    source: str = "colour reference"
+
+
+@dataclass
+class ColourTransform:
+    """Colour transform ``(M, o)``.
+
+    ``covariance`` is over ``φ = (g_r, g_g, g_b, c_t, o_r, o_g, o_b)`` (``None`` when not
+    estimated).
+    """
+
+    gain: torch.Tensor
+    contrast: float
+    offset: torch.Tensor
+    identified: bool
+    source: str
+    covariance: torch.Tensor | None = None
+    rms: float | None = None
+
+    @property
+    def M(self) -> torch.Tensor:  # noqa: N802 - the paper's symbol
+        """The 3x3 matrix ``M``."""
+        return colour_transform_matrix(self.gain, self.contrast)
+
+    @property
+    def phi(self) -> torch.Tensor:
+        """``(g, c_t, o)`` as one vector."""
+        return torch.cat([self.gain, torch.tensor([self.contrast], dtype=_F64), self.offset])
+
+    def to_dict(self) -> dict:
+        """``results.json`` block."""
+        se = (None if self.covariance is None
+              else torch.diagonal(self.covariance).clamp_min(0).sqrt())
+        out = {"identified": self.identified, "source": self.source,
+               "gain": self.gain.tolist(), "contrast": self.contrast,
+               "offset": self.offset.tolist(), "M": self.M.tolist(), "rms": self.rms}
+        if se is not None:
+            out["stderr"] = {"gain": se[:3].tolist(), "contrast": float(se[3]),
+                             "offset": se[4:].tolist()}
+        return out
+
+
+def estimate_colour_transform(ref: ColourReference) -> ColourTransform:
+    """Gain, contrast and offset from a colour reference, with their covariance.
+
+    Step (1) of A&S: ``M`` and ``o`` before anything else. Least squares over ``φ = (g, c_t,
+    o)`` (:func:`fit_colour_transform`); covariance ``σ² (JᵀWJ)⁻¹`` with the Jacobian of
+    ``g_c (c_t r_c + (1 − c_t) wᵀr) + o_c`` at the optimum, ``σ²`` the residual variance (no
+    ``variance`` given) or ``max(1, χ²_red)`` (given).
+    """
+    obs = torch.as_tensor(ref.observed, dtype=_F64)
+    rr = torch.as_tensor(ref.reference, dtype=_F64)
+    if obs.ndim != 2 or obs.shape[-1] != 3 or obs.shape != rr.shape:
+        raise FitError(f"colour reference: observed {tuple(obs.shape)} and reference "
+                       f"{tuple(rr.shape)} must both be (P, 3)")
+    ok = torch.isfinite(obs).all(-1) & torch.isfinite(rr).all(-1)
+    if int(ok.sum()) < 4:
+        raise FitError("colour reference: fewer than 4 finite patches; gain, contrast and "
+                       "offset need at least 4 (a ColorChecker has 24)")
+    lum = rr @ LUMA
+    if float((rr - lum[:, None]).abs().max()) < 1e-9 or float(lum.std()) < 1e-9:
+        raise FitError("colour reference: patches are all grey or all equal; contrast and "
+                       "offset are not identifiable (use a chart with coloured patches)")
+    g, ct, o, rms = fit_colour_transform(obs[ok], rr[ok])
+    r_ok, o_ok = rr[ok], obs[ok]
+    mixed = ct * r_ok + (1 - ct) * (r_ok @ LUMA)[:, None]
+    p = r_ok.shape[0]
+    J = torch.zeros(3, p, 7, dtype=_F64)
+    for c in range(3):
+        J[c, :, c] = mixed[:, c]
+        J[c, :, 3] = g[c] * (r_ok[:, c] - r_ok @ LUMA)
+        J[c, :, 4 + c] = 1.0
+    J = J.reshape(3 * p, 7)
+    res = (o_ok - mixed * g - o).T.reshape(-1)
+    if ref.variance is not None:
+        w = 1.0 / torch.as_tensor(ref.variance, dtype=_F64)[ok].T.reshape(-1)
+        chi2 = float((w * res * res).sum()) / max(3 * p - 7, 1)
+        s2 = max(1.0, chi2)
+    else:
+        w = torch.ones_like(res)
+        s2 = float((res * res).sum()) / max(3 * p - 7, 1)
+    cov = s2 * torch.linalg.inv((J * w[:, None]).T @ J)
+    return ColourTransform(gain=g, contrast=ct, offset=o, identified=True,
+                           source=f"estimated from {ref.source} ({p} patches)",
+                           covariance=cov, rms=rms)
+
+
+def knn_edges(points: torch.Tensor, k: int = 6) -> torch.Tensor:
+    """``(E, 2)`` undirected edges of the k-nearest-neighbour graph of ``points`` (``(N, 3)``)."""
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(points.detach().cpu().to(_F64))
+    k = min(k, len(x) - 1)
+    if k < 1:
+        return torch.zeros(0, 2, dtype=torch.long)
+    _, idx = cKDTree(x).query(x, k=k + 1)
+    i = np.repeat(np.arange(len(x)), k)
+    j = idx[:, 1:].reshape(-1)
+    e = np.unique(np.sort(np.stack([i, j], 1), 1), axis=0)
+    return torch.as_tensor(e[e[:, 0] != e[:, 1]], dtype=torch.long)
+
+
+@dataclass
+class AldrianSmithFit:
+    """Result of :func:`fit_aldrian_smith` (see ``docs/fitting.md``, "Problem 4")."""
+
+    lmax: int
+    lighting_radiance: torch.Tensor  # ((lmax+1)², 3) L_lm; 0 in unobservable rows
+    lighting_stderr: torch.Tensor  # ((lmax+1)², 3); inf in unobservable rows
+    determined: torch.Tensor  # ((lmax+1)²,) bool
+    unobservable_bands: list[int]
     albedo: torch.Tensor  # (N, 3)
+    albedo_model: str
     texture_coefficients: torch.Tensor | None  # (P,)
-    specular_low: torch.Tensor  # (lmax+1,) κ_l
-    specular_high: torch.Tensor  # (K_h, 3) unconstrained higher-order x
-    colour: dict
+    texture_stderr: torch.Tensor | None  # (P,)
+    specular_low: torch.Tensor  # (3,) κ_0..κ_2 (fewer when lmax < 2)
+    specular_low_stderr: torch.Tensor
+    specular_high: torch.Tensor  # (K_h, 3) free higher-order x
+    specular_high_stderr: torch.Tensor
+    colour: ColourTransform
     iterations: int
+    converged: bool
     prediction: torch.Tensor  # (N, 3) in observed (camera) units
+    chi2_reduced: float
+    chi2_channels: list[float]
+    noise_source: str
+    covariance: torch.Tensor  # global parameters (L observable, κ, x_h) [+ b]
+    parameter_names: list[str]
     priors: dict = field(default_factory=dict)
     ambiguities: list[dict] = field(default_factory=list)
 
+    @property
+    def lighting(self) -> torch.Tensor:
+        """Diffuse coefficients ``Â_l/π L_lm`` (radiance per unit albedo)."""
+        band = band_of_index(self.lmax)
+        return diffuse_filter(self.lmax)[band][:, None] * self.lighting_radiance
+
+    def lighting_block(self) -> dict:
+        """Return the ``lighting`` block of ``results.json`` (world frame, R&H real SH)."""
+        band = band_of_index(self.lmax)
+        snr = torch.where(self.determined[:, None],
+                          self.lighting_radiance.abs() / self.lighting_stderr,
+                          torch.zeros_like(self.lighting_radiance))
+        ill = None
+        bands = []
+        l00 = float(self.lighting_radiance[0].abs().mean()) or 1.0
+        for lb in range(self.lmax + 1):
+            sel = band == lb
+            det = bool(self.determined[sel].all())
+            bad = not det or float(snr[sel].median()) < 1.0
+            if bad and ill is None:
+                ill = lb
+            bands.append({"l": lb, "n_coefficients": int(sel.sum()),
+                          "determined_fraction": float(self.determined[sel].double().mean()),
+                          "median_rel_stderr": float(self.lighting_stderr[sel].median()) / l00
+                          if det else None,
+                          "median_snr": float(snr[sel].median()) if det else None,
+                          "singular_min": None, "singular_max": None, "condition": None,
+                          "resolution": "unobservable (Lambertian Â_l = 0)" if not det else
+                          "posterior covariance", "ill_conditioned": bad})
+        se = [[v if math.isfinite(v) else None for v in row]
+              for row in self.lighting_stderr.tolist()]
+        return {"lmax": self.lmax, "sh": "rh2001-real", "frame": "world",
+                "coefficients": self.lighting_radiance.tolist(), "stderr": se,
+                "determined": self.determined[:, None].expand(-1, 3).tolist(),
+                "ill_conditioned_from_l": ill,
+                "ill_conditioning_definition": "Aldrian & Smith: band l is ill-conditioned when "
+                "a coefficient is unobservable (odd l >= 3) or the band's median |L|/stderr < 1 "
+                "(posterior standard errors)", "bands": bands,
+                "unobservable_bands": self.unobservable_bands,
+                "unobservable_reason": "odd bands l >= 3: the clamped-cosine filter A_l is 0 "
+                "(R&H 2001 eq. 8); not seen by a Lambertian surface, set to 0, not estimated",
+                "chi2_reduced": self.chi2_channels, "noise_source": self.noise_source,
+                "scale_fixing": self.ambiguities[0]["resolution"] if self.ambiguities else "",
+                "units": "camera units after M^-1(I - o)" + ("" if self.colour.identified else
+                                                          " with M = I assumed (not identified)"),
+                "source": "aldrian-smith"}
+
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
+        def fin(t):
+            return [v if math.isfinite(v) else None for v in t.reshape(-1).tolist()]
         return {"aldrian_smith": {
             "lighting_sh": self.lighting_radiance.tolist(),
             "diffuse_coefficients": self.lighting.tolist(),
+            "albedo_model": self.albedo_model,
             "texture_coefficients": None if self.texture_coefficients is None
             else self.texture_coefficients.tolist(),
+            "texture_stderr": None if self.texture_stderr is None
+            else fin(self.texture_stderr),
             "albedo_mean": self.albedo.mean(0).tolist(),
             "specular_low_kappa": self.specular_low.tolist(),
+            "specular_low_kappa_stderr": fin(self.specular_low_stderr),
             "specular_high": self.specular_high.tolist(),
-            "colour_transform": self.colour, "iterations": self.iterations,
-            "priors": self.priors},
+            "specular_high_stderr": [fin(r) for r in self.specular_high_stderr],
+            "colour_transform": self.colour.to_dict(), "iterations": self.iterations,
+            "converged": self.converged, "chi2_reduced": self.chi2_reduced,
+            "noise_source": self.noise_source, "priors": self.priors},
+            "lighting": self.lighting_block(),
             "brdf": {"model": "aldrian-smith", "parameters": {
                 "albedo_mean": self.albedo.mean(0).tolist(),
-                "specular_kappa": self.specular_low.tolist()}},
+                "specular_kappa": self.specular_low.tolist()},
+                "stderr": {"specular_kappa": fin(self.specular_low_stderr)}},
             "ambiguities": self.ambiguities}
 
     def summary(self) -> list[str]:
         """Report lines."""
-        return [f"Problem 4 (Aldrian & Smith): colour transform {self.colour.get('source')}; "
-                f"{self.iterations} alternating diffuse steps; specular kappa_l = "
-                + ", ".join(f"{v:.4g}" for v in self.specular_low.tolist()) + "."]
+        k = ", ".join(f"{v:.4g} ± {e:.2g}" for v, e in zip(self.specular_low.tolist(),
+                                                         self.specular_low_stderr.tolist()))
+        col = self.colour
+        cs = (f"colour transform {col.source}" if col.identified else
+              "colour transform NOT identified (no colour reference): M = I, o = 0 assumed; "
+              "camera gain, light colour and object colour are confounded")
+        unob = (f"; bands {self.unobservable_bands} unobservable (Lambertian Â_l = 0)"
+                if self.unobservable_bands else "")
+        return [f"Problem 4 (Aldrian & Smith): {cs}; albedo: {self.albedo_model}; SH lighting "
+                f"to l = {self.lmax}{unob}; specular kappa_l = {k}; chi2_red = "
+                f"{self.chi2_reduced:.3g}."]
+
+
+def _colour_of(colour) -> ColourTransform:
+    if colour is None or (isinstance(colour, str) and colour == "grayworld"):
+        return ColourTransform(
+            gain=torch.ones(3, dtype=_F64), contrast=1.0, offset=torch.zeros(3, dtype=_F64),
+            identified=False,
+            source="not identified: no colour reference, M = I and o = 0 assumed")
+    if isinstance(colour, str):
+        raise FitError(f"colour = {colour!r}: M and o cannot be estimated from the object alone "
+                       "(camera gain, light colour and object colour are confounded); pass a "
+                       "ColourReference (ColorChecker patches), a known (M, o) or None")
+    if isinstance(colour, ColourReference):
+        return estimate_colour_transform(colour)
+    if isinstance(colour, ColourTransform):
+        return colour
+    M, o = (torch.as_tensor(t, dtype=_F64) for t in colour)
+    ct = _contrast_of(M)
+    if ct is None:
+        return _GivenMatrix(M, o)
+    return ColourTransform(gain=M.sum(1), contrast=ct, offset=o, identified=True,
+                           source="given")
+
+
+def _contrast_of(M: torch.Tensor) -> float | None:
+    """Contrast ``c`` if ``M`` has A&S's form (rows of ``M/g_c`` = ``c e_c + (1−c) wᵀ``)."""
+    g = M.sum(1)  # rows of c I + (1-c) 1 w^T sum to 1
+    if (g.abs() < 1e-12).any():
+        return None
+    m = M / g[:, None]
+    ct = float(1 - m[0, 1] / LUMA[1]) if abs(float(LUMA[1])) > 0 else None
+    if ct is None or (colour_transform_matrix(g, ct) - M).abs().max() > 1e-9 * M.abs().max():
+        return None
+    return ct
+
+
+class _GivenMatrix(ColourTransform):
+    """A given ``M`` not of A&S's gain/contrast form (any invertible 3x3)."""
+
+    def __init__(self, M, o):
+        super().__init__(gain=torch.ones(3, dtype=_F64), contrast=1.0, offset=o,
+                         identified=True, source="given (general 3x3 M)")
+        self._M = M
+
+    @property
+    def M(self) -> torch.Tensor:  # noqa: N802
+        """The given matrix."""
+        return self._M
+
+
+def _laplacian(edges: torch.Tensor, n: int) -> sp.csr_matrix:
+    e = np.asarray(edges.cpu())
+    if e.size == 0:
+        return sp.csr_matrix((n, n))
+    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    a = ((a + a.T) > 0).astype(np.float64)
+    return (sp.diags(np.asarray(a.sum(1)).ravel()) - a).tocsr()
 
 
 def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
                       lmax: int = 2, specular_lmax: int = 4,
                       texture_mean: torch.Tensor | None = None,
                       texture_pcs: torch.Tensor | None = None,
-                      colour: tuple[torch.Tensor, torch.Tensor] | str | None = None,
-                      grayworld: float = 0.0, simplicity: float = 0.0,
+                      colour=None, grayworld: float = 0.0, simplicity: float = 0.0,
+                      smoothness: float = 0.1, edges: torch.Tensor | None = None,
+                      positions: torch.Tensor | None = None, albedo_level: float = 0.5,
                       albedo_prior: float = 1e-3, variance: torch.Tensor | None = None,
                       max_outer: int = 3, inner_iter: int = 20, refine_iter: int = 100,
-                      tol: float = 1e-20) -> AldrianSmithFit:
-    """Fit Aldrian & Smith's model (module doc) to per-sample data.
+                      tol: float = 1e-12) -> AldrianSmithFit:
+    """Fit Aldrian & Smith's model (A&S eq. 1, module doc) to per-sample data.
 
     Parameters
     ----------
     normal, reflected : torch.Tensor
-        ``(N, 3)`` normals and reflected view directions.
+        ``(N, 3)`` normals and reflected view directions (world frame).
     radiance : torch.Tensor
         ``(N, 3)`` observed values ``I``.
     lmax : int
-        Diffuse lighting band limit (2 in the paper: 9 coefficients per channel).
+        Diffuse lighting band limit (2 in the paper); any ``lmax ≥ 0``. Odd bands ``≥ 3`` are
+        unobservable and reported so.
     specular_lmax : int
-        Highest band of the specular term (bands ≤ lmax tied to the lighting, above free).
+        Highest band of the specular term: bands ``≤ min(lmax, 2)`` tied to the lighting
+        (``κ_l``), the rest up to ``specular_lmax`` free per channel.
     texture_mean, texture_pcs : torch.Tensor, optional
-        ``(N, 3)`` mean texture ``t̄`` and ``(P, N, 3)`` principal components ``T``; without
-        them the albedo is free per sample with a prior toward the sample mean.
-    colour : (M, o), "estimate" or None
-        Known colour transform ``(3x3, (3,))``, ``"estimate"`` (from the texture-mean rendering
-        of a first pass, :func:`fit_colour_transform`) or ``None`` (identity).
-    grayworld, simplicity, albedo_prior : float
-        Prior weights (relative to the data term's trace): white illumination, ``||b||²`` and
-        ``||x_h||²``, and free-albedo shrinkage toward the mean.
-    max_outer, inner_iter, tol : int, int, float
-        Block-coordinate descent: up to ``max_outer`` rounds of (``inner_iter`` alternating
-        diffuse steps, one specular step), stopped when the weighted RSS changes by less than
-        ``tol × ||y||²``. Every step is a closed-form convex solve, so the RSS never increases.
-    refine_iter : int
-        With a texture model, then up to this many Levenberg-Marquardt steps on all unknowns
-        jointly (the explicit Jacobian of the multilinear model; 0: the paper's order only).
+        ``(N, 3)`` mean texture ``t̄`` and ``(P, N, 3)`` principal components ``T``. Without
+        them the albedo is free per sample with the smoothness prior.
+    colour : ColourReference, ColourTransform, (M, o) or None
+        A colour reference (``M``, ``o`` and their covariance estimated first, step 1), a known
+        transform, or ``None``: ``M = I, o = 0`` *assumed* and reported as not identified.
+    grayworld, simplicity : float
+        Prior weights relative to the mean diagonal of the data term's normal matrix of the
+        block they act on: ``λ_g Σ_c ||L_c − L̄||²`` (white light) and ``λ_s (||b||² +
+        ||x_h||²)``.
+    smoothness, edges, positions, albedo_level, albedo_prior : optional
+        Free albedo only: weight of ``Σ_(i,j)∈E ||a_i − a_j||²`` over ``edges`` (``(E, 2)``;
+        default the 6-nearest-neighbour graph of ``positions``, else of the normals), and of
+        ``Σ ||a_i − albedo_level||²`` (fixes the albedo × lighting scale, stated in the results).
+    variance : torch.Tensor, optional
+        ``(N, 3)`` noise variance; without it the residual variance is used.
+    max_outer, inner_iter, refine_iter, tol :
+        ``max_outer`` block-coordinate rounds (the first is the paper's order: ``inner_iter``
+        alternating diffuse steps ignoring the specular, then the specular), then up to
+        ``refine_iter`` joint Levenberg-Marquardt steps (0: none), stopped when the cost changes
+        by less than ``tol ×`` its value.
 
     Returns
     -------
     AldrianSmithFit
     """
-    f64 = torch.float64
-    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
-    r = torch.nn.functional.normalize(reflected.to(f64), dim=-1)
-    obs = radiance.to(f64)
-    if obs.shape[-1] != 3:
-        raise FitError("Aldrian & Smith's model needs RGB samples")
+    try:
+        return _fit(**{k: v for k, v in locals().items()})
+    except (torch.linalg.LinAlgError, RuntimeError) as e:
+        if isinstance(e, FitError) or "singular" not in str(e):
+            raise
+        raise FitError(f"Aldrian & Smith: the samples do not determine the model (rank-deficient "
+                       f"normal equations at lmax = {lmax}, specular_lmax = {specular_lmax}); "
+                       "lower --lmax or add views with more distinct normals") from None
+
+
+def _fit(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
+         lmax: int = 2, specular_lmax: int = 4,
+         texture_mean: torch.Tensor | None = None,
+         texture_pcs: torch.Tensor | None = None,
+         colour=None, grayworld: float = 0.0, simplicity: float = 0.0,
+         smoothness: float = 0.1, edges: torch.Tensor | None = None,
+         positions: torch.Tensor | None = None, albedo_level: float = 0.5,
+         albedo_prior: float = 1e-3, variance: torch.Tensor | None = None,
+         max_outer: int = 3, inner_iter: int = 20, refine_iter: int = 100,
+         tol: float = 1e-12) -> AldrianSmithFit:
+    n = torch.nn.functional.normalize(torch.as_tensor(normal).to(_F64), dim=-1)
+    r = torch.nn.functional.normalize(torch.as_tensor(reflected).to(_F64), dim=-1)
+    obs = torch.as_tensor(radiance).to(_F64)
+    if obs.ndim != 2 or obs.shape[-1] != 3:
+        raise FitError("Aldrian & Smith's model needs RGB samples (N, 3)")
+    if lmax < 0 or specular_lmax < 0:
+        raise FitError(f"lmax = {lmax}, specular_lmax = {specular_lmax}: must be >= 0")
+    N = obs.shape[0]
     ok = torch.isfinite(obs).all(-1) & torch.isfinite(n).all(-1) & torch.isfinite(r).all(-1)
-    if int(ok.sum()) < (lmax + 1) ** 2 + 3:
-        raise FitError("too few samples for Aldrian & Smith's model")
-    colour_info: dict = {"source": "identity (not modelled)"}
-    if isinstance(colour, tuple):
-        M, o = (torch.as_tensor(t, dtype=f64) for t in colour)
-        colour_info = {"source": "given", "M": M.tolist(), "offset": o.tolist()}
-    else:
-        M, o = torch.eye(3, dtype=f64), torch.zeros(3, dtype=f64)
-    y = (obs - o) @ torch.linalg.inv(M).T
-    w, _ = noise_weights(y, None if variance is None else variance.to(f64))
-    w = torch.where(ok[:, None], w.mean(-1, keepdim=True).expand_as(w), torch.zeros_like(w))
-    y = torch.where(ok[:, None], y, torch.zeros_like(y))
+    if (texture_mean is None) != (texture_pcs is None):
+        raise FitError("texture model: give both texture_mean (N, 3) and texture_pcs (P, N, 3)")
+    T = tmean = None
+    if texture_pcs is not None:
+        tmean = torch.as_tensor(texture_mean, dtype=_F64)
+        T = torch.as_tensor(texture_pcs, dtype=_F64)
+        if tmean.shape != (N, 3) or T.ndim != 3 or T.shape[1:] != (N, 3):
+            raise FitError(f"texture model: mean {tuple(tmean.shape)} and components "
+                           f"{tuple(T.shape)} must be (N, 3) and (P, N, 3) with N = {N}")
+        ok &= torch.isfinite(tmean).all(-1) & torch.isfinite(T).all(0).all(-1)
+    col = _colour_of(colour)
+    Mm, off = col.M, col.offset
+    if not bool(torch.isfinite(Mm).all()) or abs(float(torch.linalg.det(Mm))) < 1e-12:
+        raise FitError(f"colour transform M = {Mm.tolist()} is singular or not finite")
+    # the residual is taken in camera units, I - (M f + o), where the capture's noise model is
+    # per channel and independent (after M^-1 it would not be)
+    y = torch.where(ok[:, None], obs, torch.zeros_like(obs))
+    w, noise_source = noise_weights(y, None if variance is None
+                                    else torch.as_tensor(variance).to(_F64))
+    w = torch.where(ok[:, None], w, torch.zeros_like(w))
+
+    # bases: A&S U with the Lambertian filter folded in; S on the reflected direction
     band = band_of_index(lmax)
-    ahat = diffuse_filter(lmax)[band]  # Â_l/π per coefficient
+    filt = diffuse_filter(lmax)[band]
+    observ = filt.abs() > 1e-12 * float(filt.abs().max())
+    unobservable = sorted({int(b) for b in band[~observ].tolist()})
     check_dense_memory((n.shape[0], (max(specular_lmax, lmax) + 1) ** 2 + (lmax + 1) ** 2),
                        "dense SH designs (N x K) of the Aldrian-Smith fit", n.device)
-    U = real_sh(n, lmax)  # (N, K)   U_k l with l = Â L / π folded: l_lm = ahat * L_lm
-    k = U.shape[1]
-    ls = max(specular_lmax, lmax)
-    Sy = real_sh(r, ls)
+    U = real_sh(n, lmax)[:, observ] * filt[observ]
+    ko = U.shape[1]
+    tl = min(lmax, TIED_SPECULAR_LMAX)
+    ls = max(specular_lmax, tl)
+    S = real_sh(r, ls)
     bs = band_of_index(ls)
-    S_low, S_high = Sy[:, bs <= lmax], Sy[:, bs > lmax]
-    if texture_mean is None:
-        tmean = None
-        alb = torch.full_like(y, 0.5)
-    else:
-        tmean = torch.as_tensor(texture_mean, dtype=f64)
-        alb = tmean.clone()
-    T = None if texture_pcs is None else torch.as_tensor(texture_pcs, dtype=f64)  # (P, N, 3)
-    bcoef = None if T is None else torch.zeros(T.shape[0], dtype=f64)
+    S_tie, S_h = S[:, bs <= tl], S[:, bs > tl]
+    kt, kh = S_tie.shape[1], S_h.shape[1]
+    tie_band = bs[bs <= tl]
+    nk = tl + 1
+    G = 3 * ko + nk + 3 * kh
+    iL, iK, iX = slice(0, 3 * ko), slice(3 * ko, 3 * ko + nk), slice(3 * ko + nk, G)
+    texture = T is not None
+    A = T.shape[0] if texture else 3 * N
+    if int(ok.sum()) * 3 < G + (A if texture else 0) + 1:
+        raise FitError(f"too few samples ({int(ok.sum())}) for Aldrian & Smith's model with "
+                       f"lmax = {lmax}, specular_lmax = {ls} ({G} lighting/specular unknowns)")
+    ww = w.T.reshape(-1)  # rows channel-major (c, n)
 
-    l = torch.zeros(k, 3, dtype=f64)  # l_lm,c = Â_l/π L_lm,c
-    spec = torch.zeros_like(y)
-    kappa = torch.zeros(lmax + 1, dtype=f64)
-    xh = torch.zeros(S_high.shape[1], 3, dtype=f64)
+    def unpack(th):
+        L = th[iL].reshape(3, ko).T
+        return L, th[iK], th[iX].reshape(3, kh).T
+
+    def albedo_of(ta):
+        if texture:
+            return tmean + torch.einsum("p,pnc->nc", ta, T)
+        return ta.reshape(3, N).T
+
+    def model(th, ta):
+        L, kap, xh = unpack(th)
+        alb = albedo_of(ta)
+        shade = U @ L
+        spec = S_tie @ (kap[tie_band][:, None] * L[:kt]) + S_h @ xh
+        return shade * alb + spec, shade, alb
+
+    def jac_g(th, ta, shade, alb):
+        L, kap, _ = unpack(th)
+        J = torch.zeros(3, N, G, dtype=_F64)
+        fac = kap[tie_band]
+        for c in range(3):
+            blk = U * alb[:, c:c + 1]
+            blk[:, :kt] += S_tie * fac
+            J[c, :, c * ko:(c + 1) * ko] = blk
+            for lb in range(nk):
+                sel = tie_band == lb
+                J[c, :, 3 * ko + lb] = S_tie[:, sel] @ L[:kt][sel, c]
+            J[c, :, 3 * ko + nk + c * kh: 3 * ko + nk + (c + 1) * kh] = S_h
+        return J.reshape(3 * N, G)
+
+    def jac_a(shade):
+        if texture:
+            return torch.stack([(T[:, :, c] * shade[None, :, c]).T for c in range(3)]
+                               ).reshape(3 * N, A)
+        return shade.T.reshape(-1)  # diagonal
+
+    # ---- priors (quadratic; weights relative to the data-term scale at the start) ----
+    ta = torch.zeros(A, dtype=_F64) if texture else \
+        torch.full((3 * N,), float(albedo_level), dtype=_F64)
+    th = torch.zeros(G, dtype=_F64)
+    alb0 = albedo_of(ta)
+    sL = float((w.T[:, :, None] * (U[None] * alb0.T[:, :, None]) ** 2).sum(1).mean())
+    Pg = torch.zeros(G, G, dtype=_F64)
+    if grayworld > 0:
+        Pg[iL, iL] += grayworld * sL * torch.kron(torch.eye(3, dtype=_F64) - 1.0 / 3.0,
+                                                  torch.eye(ko, dtype=_F64))
+    sX = float((w.mean(1)[:, None] * S_h ** 2).sum(0).mean()) if kh else 0.0
+    if kh:
+        Pg[iX, iX] += (simplicity + 1e-12) * sX * torch.eye(3 * kh, dtype=_F64)
+    Pg[iK, iK] += 1e-12 * torch.eye(nk, dtype=_F64)
+    mu_a = torch.zeros(A, dtype=_F64)
+    edges_used = "none"
+    lap = None
+    if not texture:
+        mu_a[:] = float(albedo_level)
+        if edges is None:
+            src = positions if positions is not None else n
+            edges_used = ("6-nearest-neighbour graph of the sample positions" if positions
+                          is not None else "6-nearest-neighbour graph of the normals")
+            edges = knn_edges(torch.as_tensor(src), 6)
+        else:
+            edges_used = f"{len(edges)} given edges"
+        lap = _laplacian(torch.as_tensor(edges), N)
+    Pa = torch.zeros(A, A, dtype=_F64) if texture else sp.csc_matrix((A, A))
+
+    def make_pa(shade):
+        if texture:
+            ja = mix(jac_a(shade).reshape(3, N, A)).reshape(3 * N, A)
+            d = ((ja ** 2) * ww[:, None]).sum(0).mean()
+            return (simplicity + 1e-12) * float(d) * torch.eye(A, dtype=_F64)
+        d = float(free_blocks(shade, w).diagonal().sum() / max(3 * int(ok.sum()), 1))
+        blk = smoothness * d * lap + albedo_prior * d * sp.identity(N)
+        return sp.block_diag([blk] * 3, format="csc")
+
+    def cost(th_, ta_):
+        p_, _, _ = model(th_, ta_)
+        c = float((w * (y - p_ @ Mm.T - off) ** 2).sum()) + float(th_ @ Pg @ th_)
+        da = ta_ - mu_a
+        if texture:
+            c += float(da @ Pa @ da)
+        else:
+            c += float(da.numpy() @ (Pa @ da.numpy()))
+        return c
+
+    def mix(J3):
+        """Rows of the camera-space Jacobian: ``∂(M f)_c = Σ_c' M_cc' ∂f_c'``."""
+        return torch.einsum("cd,dnk->cnk", Mm, J3)
+
+    def free_blocks(shade, wv):
+        """Free albedo: ``Σ_c w M_cc' M_cc'' s_c' s_c''`` per sample, as a sparse 3N x 3N."""
+        rows = []
+        for c1 in range(3):
+            row = []
+            for c2 in range(3):
+                d = (wv * Mm[:, c1] * Mm[:, c2]).sum(1) * shade[:, c1] * shade[:, c2]
+                row.append(sp.diags(d.numpy()))
+            rows.append(row)
+        return sp.bmat(rows, format="csc")
+
+    def system(th_, ta_, want_ga=True):
+        p_, shade, alb = model(th_, ta_)
+        res3 = y - (p_ @ Mm.T + off)  # (N, 3)
+        res = res3.T.reshape(-1)
+        Jg3 = mix(jac_g(th_, ta_, shade, alb).reshape(3, N, G))
+        Jg = Jg3.reshape(3 * N, G)
+        Hgg = (Jg * ww[:, None]).T @ Jg + Pg
+        rg = (Jg * ww[:, None]).T @ res - Pg @ th_
+        da = ta_ - mu_a
+        if texture:
+            ja = mix(jac_a(shade).reshape(3, N, A)).reshape(3 * N, A)
+            Haa = (ja * ww[:, None]).T @ ja + Pa
+            ra = (ja * ww[:, None]).T @ res - Pa @ da
+            Hga = (Jg * ww[:, None]).T @ ja if want_ga else None
+        else:
+            ja = shade
+            Haa = (free_blocks(shade, w) + Pa).tocsc()
+            wr = w * res3  # (N, 3)
+            ra = torch.as_tensor((torch.einsum("nc,cd,nd->dn", wr, Mm, shade).reshape(-1)
+                                  ).numpy() - Pa @ da.numpy())
+            Hga = (torch.einsum("cng,nc,cd,nd->gdn", Jg3, w, Mm, shade).reshape(G, 3 * N)
+                   if want_ga else None)
+        return Hgg, rg, Haa, ra, Hga, Jg, ja
+
+    def solve_aa(Haa, rhs):
+        if texture:
+            return torch.linalg.solve(Haa, rhs)
+        lu = spla.splu(sp.csc_matrix(Haa))
+        return torch.as_tensor(lu.solve(np.asarray(rhs)))
+
+    def solve_block(H, rhs):
+        return torch.linalg.solve(H, rhs)
+
+    # ---- step 2 (paper): diffuse bilinear, specular ignored (κ = 0, x_h = 0) ----
+    iters = 0
+    Pa_set = False
     prev = math.inf
-    it = 0
-    total_prev = math.inf
-    n_inner = 0
-    for outer in range(max_outer):  # diffuse (alternating) then specular, until converged
-        yd = y - spec
-        prev = math.inf
-        for it in range(1, inner_iter + 1):
-            n_inner += 1
-            # lighting given albedo: per channel + grayworld coupling (27x27 normal equations)
-            G = torch.zeros(3 * k, 3 * k, dtype=f64)
-            R = torch.zeros(3 * k, dtype=f64)
-            for c in range(3):
-                a = U * alb[:, c:c + 1]
-                G[c * k:(c + 1) * k, c * k:(c + 1) * k] = (a * w[:, c:c + 1]).T @ a
-                R[c * k:(c + 1) * k] = (a * w[:, c:c + 1]).T @ yd[:, c]
-            if grayworld > 0:
-                lam = grayworld * torch.diagonal(G).mean()
-                P = torch.eye(3, dtype=f64) - 1.0 / 3.0  # l_c - mean_c l
-                G += lam * torch.kron(P, torch.eye(k, dtype=f64))
-            l = torch.linalg.solve(G + 1e-14 * torch.diagonal(G).mean() * torch.eye(3 * k,
-                                                                                   dtype=f64),
-                                   R).reshape(3, k).T
-            shade = U @ l  # (N, 3)
-            if T is not None:
-                # texture coefficients given lighting: y - shade*tmean = sum_p b_p shade*T_p
-                A = (T * shade[None]).reshape(T.shape[0], -1).T  # (N*3, P)
-                rhs = (yd - shade * tmean).reshape(-1)
-                ww = w.reshape(-1)
-                Gb = (A * ww[:, None]).T @ A
-                Gb = Gb + simplicity * torch.diagonal(Gb).mean() * torch.eye(T.shape[0],
-                                                                               dtype=f64)
-                bcoef = torch.linalg.solve(Gb, (A * ww[:, None]).T @ rhs)
-                alb = tmean + torch.einsum("p,pnc->nc", bcoef, T)
-            else:
-                prior = tmean if tmean is not None else alb.mean(0, keepdim=True).expand_as(alb)
-                lam_a = albedo_prior * (w * shade * shade).mean()
-                alb = (w * shade * yd + lam_a * prior) / (w * shade * shade + lam_a)
-            rss = float((w * (yd - shade * alb) ** 2).sum())
-            if abs(prev - rss) <= tol * max(float((w * yd * yd).sum()), 1e-300):
+    for _ in range(inner_iter):
+        iters += 1
+        Hgg, rg, Haa, ra, _, _, _ = system(th, ta, want_ga=False)
+        th[iL] = th[iL] + solve_block(Hgg[iL, iL], rg[iL])
+        if not Pa_set:
+            _, shade0, _ = model(th, ta)
+            Pa = make_pa(shade0)
+            Pa_set = True
+        Hgg, rg, Haa, ra, _, _, _ = system(th, ta, want_ga=False)
+        ta = ta + solve_aa(Haa, ra)
+        cur = cost(th, ta)
+        if abs(prev - cur) <= 1e-10 * max(cur, 1e-300):
+            break
+        prev = cur
+    # ---- step 3 (paper): specular, tied low orders then free high orders; then BCD rounds ----
+    for rnd in range(max_outer):
+        for blk in ((iK,), (iX,)) if rnd == 0 else ((iL,), ("a",), (iK,), (iX,)):
+            iters += 1
+            Hgg, rg, Haa, ra, _, _, _ = system(th, ta, want_ga=False)
+            b = blk[0]
+            if b == "a":
+                ta = ta + solve_aa(Haa, ra)
+            elif (b.stop - b.start) > 0:
+                th[b] = th[b] + solve_block(Hgg[b, b], rg[b])
+    # ---- joint Gauss-Newton / Levenberg-Marquardt on the same cost ----
+    cur = cost(th, ta)
+    mu = 1e-6
+    converged = refine_iter == 0
+
+    def joint_solve(Hgg, Haa, Hga, rg, ra, damp=0.0):
+        """Solve the full normal equations by eliminating the albedo block (Schur)."""
+        Hg = Hgg + damp * torch.diag(torch.diagonal(Hgg))
+        if texture:
+            Ha = Haa + damp * torch.diag(torch.diagonal(Haa))
+        else:
+            Ha = (Haa + damp * sp.diags(Haa.diagonal())).tocsc()
+        if texture:
+            X = torch.linalg.solve(Ha, Hga.T)
+            sol = solve_aa
+        else:
+            lu = spla.splu(Ha)
+
+            def sol(_, rhs):
+                return torch.as_tensor(lu.solve(np.asarray(rhs)))
+            X = sol(Ha, Hga.T)
+        Sg = Hg - Hga @ X
+        z = sol(Ha, ra)
+        dg = torch.linalg.solve(Sg, rg - Hga @ z)
+        dA = z - X @ dg
+        return dg, dA, Sg, X, Ha
+
+    for _ in range(refine_iter):
+        Hgg, rg, Haa, ra, Hga, _, _ = system(th, ta)
+        stepped = False
+        for _ in range(12):
+            dg, dA, *_ = joint_solve(Hgg, Haa, Hga, rg, ra, mu)
+            new = cost(th + dg, ta + dA)
+            if new <= cur:
+                done = (cur - new) <= tol * max(cur, 1e-300)
+                th, ta, cur, mu = th + dg, ta + dA, new, max(mu / 10, 1e-12)
+                stepped = True
                 break
-            prev = rss
-        diff = (U @ l) * alb
-        res = y - diff
-        # specular low: x_lm = kappa_l * L_lm, L_lm = l_lm / (Â_l/π); 3 free params (shared)
-        Lrad = torch.where(ahat[:, None].abs() > 0, l / ahat[:, None].clamp_min(1e-300),
-                           torch.zeros_like(l))
-        cols = []
-        for lb_ in range(lmax + 1):
-            sel = band == lb_
-            cols.append(S_low[:, sel] @ Lrad[sel])  # (N, 3)
-        A = torch.stack(cols, -1).reshape(-1, lmax + 1)  # rows (n, c)
-        ww = w.reshape(-1)
-        kappa = torch.linalg.lstsq(A * ww[:, None].sqrt(), res.reshape(-1) * ww.sqrt()
-                                   ).solution
-        spec_low = (A @ kappa).reshape(-1, 3)
-        # specular high: unconstrained per channel, simplicity prior
-        res2 = res - spec_low
-        if S_high.shape[1]:
-            for c in range(3):
-                Gh = (S_high * w[:, c:c + 1]).T @ S_high
-                Gh = Gh + (simplicity + 1e-14) * torch.diagonal(Gh).mean() * torch.eye(
-                    S_high.shape[1], dtype=f64)
-                xh[:, c] = torch.linalg.solve(Gh, (S_high * w[:, c:c + 1]).T @ res2[:, c])
-        spec = spec_low + S_high @ xh
-        total = float((w * (y - (U @ l) * alb - spec) ** 2).sum())
-        if colour != "estimate" or outer > 0:
-            if abs(total_prev - total) <= tol * max(float((w * y * y).sum()), 1e-300):
-                break
-        total_prev = total
-        if colour == "estimate" and outer == 0:
-            model = (U @ l) * alb + spec
-            g, ct, oo, rms = fit_colour_transform(obs, model)
-            M = colour_transform_matrix(g, ct)
-            o = oo
-            colour_info = {"source": "estimated (gain, contrast, offset) from the first-pass "
-                                     "model rendering", "gain": g.tolist(), "contrast": ct,
-                           "offset": o.tolist(), "M": M.tolist(), "rms": rms}
-            y = torch.where(ok[:, None], (obs - o) @ torch.linalg.inv(M).T, torch.zeros_like(y))
-            total_prev = math.inf
-    if T is not None and refine_iter > 0:
-        # joint refinement (beyond the paper's diffuse-then-specular order): Levenberg-Marquardt
-        # on all unknowns (l, b, κ, x_h) with the explicit Jacobian of the multilinear model;
-        # the priors enter as the same quadratic penalties
-        kh = S_high.shape[1]
-        pdim = T.shape[0]
-        nn = y.shape[0]
-        nl, nx = 3 * k, 3 * kh
-        npar = nl + pdim + (lmax + 1) + nx
-        ww = w.T.reshape(-1)  # rows ordered (c, n)
-        yv = y.T.reshape(-1)
-        pen = torch.zeros(npar, npar, dtype=f64)
+            mu *= 10
+        iters += 1
+        if not stepped or done:
+            converged = True
+            break
 
-        def unpack(th):
-            l_ = th[:nl].reshape(3, k).T
-            b_ = th[nl:nl + pdim]
-            k_ = th[nl + pdim:nl + pdim + lmax + 1]
-            x_ = th[nl + pdim + lmax + 1:].reshape(3, kh).T
-            return l_, b_, k_, x_
+    # ---- posterior covariance ----
+    Hgg, rg, Haa, ra, Hga, Jg, ja = system(th, ta)
+    dg, dA, Sg, X, Ha = joint_solve(Hgg, Haa, Hga, rg, ra, 0.0)
+    pred_y, shade, alb = model(th, ta)
+    rss = float((w * (y - pred_y @ Mm.T - off) ** 2).sum())
+    n_obs = 3 * int(ok.sum())
+    if texture:
+        a_eff = float(A)
+    else:
+        dd = free_blocks(shade, w).diagonal()
+        a_eff = float((dd / np.maximum(Ha.diagonal(), 1e-300)).sum())
+    dof = max(n_obs - G - a_eff, 1.0)
+    chi2 = rss / dof
+    chi2_c = ((w * (y - pred_y @ Mm.T - off) ** 2).sum(0) / (dof / 3)).tolist()
+    s2 = chi2 if variance is None else max(1.0, chi2)
+    Sinv = torch.linalg.inv(Sg)
+    cov_g = s2 * Sinv
+    cov_b = None
+    if texture:
+        Hinv_aa = torch.linalg.inv(Haa)
+        cov_b = s2 * (Hinv_aa + X @ Sinv @ X.T)
+        cov_gb = -s2 * Sinv @ X.T
+    if col.covariance is not None:
+        # first-order propagation of φ = (g, c_t, o): dθ/dφ = −H⁻¹ Jᵀ W ∂(M f + o)/∂φ
+        phi = col.phi
+        D = torch.zeros(3 * N, 7, dtype=_F64)
+        for j in range(4):
+            h = 1e-6 * max(1.0, abs(float(phi[j])))
+            pp, pm = phi.clone(), phi.clone()
+            pp[j] += h
+            pm[j] -= h
+            dM = (colour_transform_matrix(pp[:3], float(pp[3]))
+                  - colour_transform_matrix(pm[:3], float(pm[3]))) / (2 * h)
+            D[:, j] = (pred_y @ dM.T).T.reshape(-1)
+        for c in range(3):
+            D[c * N:(c + 1) * N, 4 + c] = 1.0
+        D = D * ok.repeat(3)[:, None]
+        rgD = (Jg * ww[:, None]).T @ D
+        if texture:
+            raD = (ja * ww[:, None]).T @ D
+        else:
+            wD = w.T[:, :, None] * D.reshape(3, N, 7)  # (c, n, j)
+            raD = torch.einsum("cnj,cd,nd->dnj", wD, Mm, shade).reshape(3 * N, 7)
+        dgD, dAD, *_ = joint_solve(Hgg, Haa, Hga, rgD, raD, 0.0)
+        cov_g = cov_g + dgD @ col.covariance @ dgD.T
+        if texture:
+            cov_b = cov_b + dAD @ col.covariance @ dAD.T
+            cov_gb = cov_gb + dgD @ col.covariance @ dAD.T
+    se_g = torch.diagonal(cov_g).clamp_min(0).sqrt()
+    L, kap, xh = unpack(th)
+    K = (lmax + 1) ** 2
+    Lfull = torch.zeros(K, 3, dtype=_F64)
+    Lfull[observ] = L
+    Lse = torch.full((K, 3), math.inf, dtype=_F64)
+    Lse[observ] = se_g[iL].reshape(3, ko).T
+    names = ([f"L[{i},{c}]" for c in range(3) for i in torch.nonzero(observ).reshape(-1).tolist()]
+             + [f"kappa_{i}" for i in range(nk)] + [f"x_h[{i},{c}]" for c in range(3)
+                                                   for i in range(kh)])
+    cov = cov_g
+    if texture:
+        cov = torch.cat([torch.cat([cov_g, cov_gb], 1), torch.cat([cov_gb.T, cov_b], 1)], 0)
+        names += [f"b_{i}" for i in range(A)]
+    pred = pred_y @ col.M.T + col.offset
+    pred = torch.where(ok[:, None], pred, torch.full_like(pred, math.nan))
 
-        def model(th):
-            l_, b_, k_, x_ = unpack(th)
-            al = tmean + torch.einsum("p,pnc->nc", b_, T)
-            sh_ = U @ l_
-            sp = S_low @ (k_[band][:, None] * l_ / ahat[:, None]) + S_high @ x_
-            return sh_ * al + sp, al, sh_
-
-        def jac(th):
-            l_, b_, k_, x_ = unpack(th)
-            al = tmean + torch.einsum("p,pnc->nc", b_, T)
-            sh_ = U @ l_
-            J = torch.zeros(3, nn, npar, dtype=f64)
-            fac = k_[band] / ahat
-            for c in range(3):
-                J[c, :, c * k:(c + 1) * k] = U * al[:, c:c + 1] + S_low * fac
-                J[c, :, nl:nl + pdim] = (T[:, :, c] * sh_[None, :, c]).T
-                for lb_ in range(lmax + 1):
-                    sel = band == lb_
-                    J[c, :, nl + pdim + lb_] = S_low[:, sel] @ (l_[sel, c] / ahat[sel])
-                J[c, :, nl + pdim + lmax + 1 + c * kh: nl + pdim + lmax + 1 + (c + 1) * kh] = S_high
-            return J.reshape(3 * nn, npar)
-
-        th = torch.cat([l.T.reshape(-1), bcoef, kappa, xh.T.reshape(-1)])
-        J = jac(th)
-        scale = torch.diagonal((J * ww[:, None]).T @ J).mean()
-        if grayworld > 0:
-            pen[:nl, :nl] += grayworld * scale * torch.kron(torch.eye(3, dtype=f64) - 1.0 / 3.0,
-                                                            torch.eye(k, dtype=f64))
-        pen[nl:nl + pdim, nl:nl + pdim] += simplicity * scale * torch.eye(pdim, dtype=f64)
-        pen[-nx:, -nx:] += simplicity * scale * torch.eye(nx, dtype=f64)
-
-        def cost(th):
-            p_, _, _ = model(th)
-            return float((w * (y - p_) ** 2).sum() + th @ pen @ th)
-
-        cur = cost(th)
-        mu = 1e-6
-        for it2 in range(refine_iter):
-            J = jac(th)
-            p_, _, _ = model(th)
-            res = yv - p_.T.reshape(-1)
-            H = (J * ww[:, None]).T @ J + pen
-            gvec = (J * ww[:, None]).T @ res - pen @ th
-            stepped = False
-            for _ in range(10):
-                d = torch.linalg.solve(H + mu * torch.diag(torch.diagonal(H)), gvec)
-                new = cost(th + d)
-                if new <= cur:
-                    done = (cur - new) <= tol * max(float((w * y * y).sum()), 1e-300)
-                    th, cur, mu = th + d, new, max(mu / 10, 1e-12)
-                    stepped = True
-                    break
-                mu *= 10
-            n_inner += 1
-            if not stepped or done:
-                break
-        l, bcoef, kappa, xh = unpack(th)
-        _, alb, _ = model(th)
-        Lrad = l / ahat[:, None]
-        spec = S_low @ (kappa[band][:, None] * Lrad) + S_high @ xh
-    pred = ((U @ l) * alb + spec) @ M.T + o
-    amb = [{"name": "albedo x lighting scale",
-            "resolution": "fixed by the texture model's mean" if tmean is not None else
-            "fixed by the albedo prior toward the mean (weak): lighting carries the scale"},
+    if texture:
+        albedo_model = f"texture model ({A} principal components + mean)"
+        scale_res = "fixed by the texture model's mean"
+    else:
+        albedo_model = (f"free per-sample albedo, smoothness prior (weight {smoothness:g}) over "
+                        f"the {edges_used}; no texture model")
+        scale_res = (f"fixed by the assumption mean albedo ≈ {albedo_level:g} (prior weight "
+                     f"{albedo_prior:g}); lighting and κ carry the scale")
+    amb = [{"name": "albedo x lighting scale", "resolution": scale_res},
            {"name": "colour (red light vs red object)",
             "resolution": (f"grayworld prior (weight {grayworld:g}) prefers white light"
                            if grayworld > 0 else "texture model colour statistics"
-                           if T is not None else "NOT resolved (no grayworld prior, no "
-                           "texture model)")},
-           {"name": "colour transform vs albedo/lighting",
-            "resolution": "transform " + colour_info["source"]}]
-    return AldrianSmithFit(lighting=l, lighting_radiance=Lrad, albedo=alb,
-                           texture_coefficients=bcoef, specular_low=kappa, specular_high=xh,
-                           colour=colour_info, iterations=n_inner, prediction=pred,
-                           priors={"grayworld": grayworld, "simplicity": simplicity,
-                                   "albedo_prior": albedo_prior},
-                           ambiguities=amb)
+                           if texture else "NOT resolved (no grayworld prior, no texture "
+                           "model): the light's colour is assumed carried by the albedo prior")},
+           {"name": "camera gain vs light colour vs object colour",
+            "resolution": ("identified by " + col.source) if col.identified else
+            ("NOT identified: no colour reference; M = I, o = 0 assumed, so the lighting "
+             "carries the camera's gain and white balance and the offset is taken as 0")}]
+    amb.append({"name": "specular DC (kappa_0) vs albedo level",
+                "resolution": "the tied specular DC κ_0 L_00 Y_00 is a constant; it is "
+                "separated from the diffuse DC only through the albedo's spatial variation "
+                + ("(the texture model's components): with a nearly uniform albedo only "
+                   "(albedo + κ_0)·L_00 is determined" if texture else
+                   "— a smooth free albedo can absorb it (an albedo change ∝ 1/shading), only "
+                   "the smoothness prior separates them; give a texture model for a reliable "
+                   "κ_0") + "; κ_1, κ_2 vary with r and separate well"})
+    if unobservable:
+        amb.append({"name": "odd lighting bands >= 3",
+                    "resolution": f"bands {unobservable} unobservable from a Lambertian "
+                    "surface (Â_l = 0); reported as 0 with no standard error"})
+    return AldrianSmithFit(
+        lmax=lmax, lighting_radiance=Lfull, lighting_stderr=Lse, determined=observ.clone(),
+        unobservable_bands=unobservable, albedo=alb, albedo_model=albedo_model,
+        texture_coefficients=ta.clone() if texture else None,
+        texture_stderr=torch.diagonal(cov_b).clamp_min(0).sqrt() if texture else None,
+        specular_low=kap.clone(), specular_low_stderr=se_g[iK],
+        specular_high=xh.clone(), specular_high_stderr=se_g[iX].reshape(3, kh).T,
+        colour=col, iterations=iters, converged=converged, prediction=pred,
+        chi2_reduced=chi2, chi2_channels=chi2_c, noise_source=noise_source, covariance=cov,
+        parameter_names=names,
+        priors={"grayworld": grayworld, "simplicity": simplicity,
+                "smoothness": None if texture else smoothness,
+                "albedo_prior": None if texture else albedo_prior,
+                "albedo_level": None if texture else albedo_level},
+        ambiguities=amb)
 
 
-def fit_aldrian_smith_samples(samples, lmax: int = 2, rule: str = "gcv") -> AldrianSmithFit:
-    """Pipeline entry: per-pixel samples, no texture model, grayworld prior on."""
-    return fit_aldrian_smith(samples.normal, samples.reflected, samples.radiance, lmax=lmax,
-                             grayworld=1e-3, simplicity=1e-3, variance=samples.variance)
+#: Pipeline mode fits at most this many samples (an even subsample; all are predicted).
+PIPELINE_MAX_SAMPLES = 3000
+
+
+def fit_aldrian_smith_samples(samples, lmax: int = 2, colour=None, texture=None,
+                              specular_lmax: int | None = None, grayworld: float = 1e-3,
+                              simplicity: float = 1e-3, refine_iter: int = 25,
+                              rule: str | None = None) -> AldrianSmithFit:
+    """Pipeline entry: per-pixel samples, grayworld prior on.
+
+    Free albedo with the smoothness prior unless a texture model ``(mean (N, 3), components
+    (P, N, 3))`` is given; ``colour`` as in :func:`fit_aldrian_smith`. ``rule`` (the problems'
+    common ``--rule``) is recorded but not used: A&S's prior weights are fixed, not chosen by
+    a regularisation rule.
+    """
+    N = len(samples)
+    ls = max(4, lmax) if specular_lmax is None else specular_lmax
+    if N > PIPELINE_MAX_SAMPLES and texture is None:
+        idx = torch.linspace(0, N - 1, PIPELINE_MAX_SAMPLES).round().long()
+    else:
+        idx = torch.arange(N)
+    pos = None if samples.position is None else samples.position[idx]
+    kw = {}
+    if texture is not None:
+        kw = {"texture_mean": texture[0], "texture_pcs": texture[1]}
+    f = fit_aldrian_smith(samples.normal[idx], samples.reflected[idx], samples.radiance[idx],
+                          lmax=lmax, specular_lmax=ls, colour=colour, grayworld=grayworld,
+                          simplicity=simplicity, positions=pos, refine_iter=refine_iter,
+                          variance=None if samples.variance is None else samples.variance[idx],
+                          **kw)
+    if len(idx) < N:  # predict every sample: albedo by nearest fitted sample
+        from scipy.spatial import cKDTree
+
+        src = samples.position if samples.position is not None else samples.normal
+        tree = cKDTree(np.asarray(src[idx].cpu()))
+        _, nn = tree.query(np.asarray(src.cpu()), k=1)
+        alb = f.albedo[torch.as_tensor(nn)]
+        nrm = torch.nn.functional.normalize(samples.normal.to(_F64), dim=-1)
+        rfl = torch.nn.functional.normalize(samples.reflected.to(_F64), dim=-1)
+        shade = real_sh(nrm, lmax) @ f.lighting
+        tl = min(lmax, TIED_SPECULAR_LMAX)
+        lsx = max(ls, tl)
+        Sx = real_sh(rfl, lsx)
+        bs = band_of_index(lsx)
+        kt = (tl + 1) ** 2
+        spec = Sx[:, bs <= tl] @ (f.specular_low[bs[bs <= tl]][:, None]
+                                  * f.lighting_radiance[:kt]) + Sx[:, bs > tl] @ f.specular_high
+        f.prediction = ((shade * alb + spec) @ f.colour.M.T + f.colour.offset)
+        f.albedo_model += f" (fitted on an even subsample of {len(idx)} of {N} samples)"
+    f.priors["rule"] = f"{rule} (not used: fixed prior weights)" if rule else None
+    return f

@@ -1,12 +1,18 @@
 """Problem ``aldrian-smith``: Aldrian & Smith's (2011) photometric model.
 
-Diffuse SH lighting and albedo with a grayworld prior, plus a specular band profile
-(:mod:`brdfcap.fit.aldrian_smith`). A MAP estimate with priors: no standard errors.
+Colour transform (gain, contrast, offset), albedo (linear texture model or free per sample
+with a smoothness prior), SH lighting with grayworld and simplicity priors, and a specular
+term on the SH basis of the reflected view direction (:mod:`brdfcap.fit.aldrian_smith`),
+each with its posterior standard error.
 """
 
 from __future__ import annotations
 
-from ..aldrian_smith import fit_aldrian_smith_samples
+import torch
+
+from brdfcap.core.errors import FitError
+
+from ..aldrian_smith import ColourTransform, fit_aldrian_smith_samples
 from ..result import Estimate, FitResult
 from .base import FitOptions, Known, Problem, need_environment, register_problem
 
@@ -14,17 +20,42 @@ __all__ = ["problem_aldrian_smith"]
 
 
 def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
-    """Problem 4: Aldrian & Smith's photometric model (:mod:`brdfcap.fit.aldrian_smith`)."""
+    """Problem 4: Aldrian & Smith's photometric model (:mod:`brdfcap.fit.aldrian_smith`).
+
+    Lighting to ``--lmax`` (any ``lmax >= 0``; odd bands >= 3 reported unobservable). The colour
+    transform counts as identified when the capture's ``[colour]`` ColorChecker correction was
+    applied at load (the views are then in the chart's working space, ``M = I``); otherwise it
+    is reported as not identified (``M = I, o = 0`` assumed). A ``[texture_model]`` gives the
+    albedo model; without one the albedo is free per sample with the smoothness prior.
+    """
     need_environment(known)
-    res = fit_aldrian_smith_samples(samples, lmax=min(opts.lmax, 2), rule=opts.rule)
-    note = "MAP estimate with priors (Aldrian & Smith 2011): no standard error"
-    est = [Estimate("lighting", res.lighting_radiance, None, "sh", note=note),
-           Estimate("albedo_mean", res.albedo.mean(0), None, "channel", note=note),
-           Estimate("specular_kappa", res.specular_low, None, "band", note=note)]
+    colour = None
+    if known.colour_corrected:
+        colour = ColourTransform(
+            gain=torch.ones(3, dtype=torch.float64), contrast=1.0,
+            offset=torch.zeros(3, dtype=torch.float64), identified=True,
+            source="ColorChecker correction applied at load ([colour] in capture.toml): the "
+                   "views are in the chart's working space, M = I (its uncertainty is not "
+                   "propagated)")
+    texture = None
+    if known.texture_model is not None:
+        if samples.position is None:
+            raise FitError("[texture_model] needs a mesh capture (per-sample world positions); "
+                           "this capture has a normal map", known.source)
+        texture = known.texture_model.at(samples.position)
+    res = fit_aldrian_smith_samples(samples, lmax=opts.lmax, colour=colour, texture=texture,
+                                    rule=opts.rule)
+    note = "posterior standard error (Aldrian & Smith 2011 model with its priors)"
+    est = [Estimate("lighting", res.lighting_radiance, res.lighting_stderr, "sh", note=note),
+           Estimate("albedo_mean", res.albedo.mean(0), None, "channel",
+                    note="mean of the per-sample albedo: no standard error"),
+           Estimate("specular_kappa", res.specular_low, res.specular_low_stderr, "band",
+                    note=note)]
     return FitResult("aldrian-smith", est, res.prediction, res.to_results(),
                      summary=res.summary(), ambiguities=list(res.ambiguities))
 
 
 register_problem(Problem(
     "aldrian-smith", problem_aldrian_smith,
-    "Aldrian & Smith's (2011) photometric model (diffuse SH lighting, albedo, specular)"))
+    "Aldrian & Smith's (2011) photometric model (colour transform, albedo, SH lighting, "
+    "specular on the reflected direction)"))

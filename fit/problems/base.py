@@ -66,6 +66,11 @@ class Known:
     geometry_source: str = "mesh"
     image_shape: tuple[int, int] | None = None
     lighting_named: bool = False  # capture.toml names its lighting (known-lighting problems)
+    #: a ``[colour]`` ColorChecker correction was applied at load (views in the chart's space)
+    colour_corrected: bool = False
+    #: ``[texture_model]``: a linear albedo model with ``at(points) -> (mean, pcs)``
+    #: (:class:`brdfcap.capture.texture_model.TextureModel`, loaded by the pipeline)
+    texture_model: Any = None
 
     @property
     def albedo(self) -> torch.Tensor | None:

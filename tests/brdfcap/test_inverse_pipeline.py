@@ -201,3 +201,61 @@ def test_known_lighting_from_a_results_layout_json(captures, tmp_path):
     (cap / "capture.toml").write_text(toml.replace(m.group(0), 'coefficients = "sh.json"'))
     named = _run(cap, tmp_path / "named", "--problem", "brdf", "--brdf-lmax", "4")
     assert named["brdf"]["sh"]["filter"] == inline["brdf"]["sh"]["filter"]
+
+
+@pytest.mark.parametrize("lmax", [pytest.param(2, marks=pytest.mark.slow), 4])
+def test_problem_aldrian_smith_honours_lmax(captures, tmp_path, lmax):
+    """`--problem aldrian-smith --lmax L` honours L.
+
+    (L+1)² finite lighting rows per channel, a `lighting` block, odd bands ≥ 3 unobservable,
+    and M reported not identified (no chart).
+    """
+    r = _run(captures["env"], tmp_path / "o", "--problem", "aldrian-smith", "--lmax", str(lmax))
+    lt = r["lighting"]
+    assert lt["lmax"] == lmax and len(lt["coefficients"]) == (lmax + 1) ** 2
+    assert all(v is not None and v == v for row in lt["coefficients"] for v in row)
+    assert lt["unobservable_bands"] == list(range(3, lmax + 1, 2))
+    assert r["aldrian_smith"]["colour_transform"]["identified"] is False
+    assert "free per-sample albedo" in r["aldrian_smith"]["albedo_model"]
+
+
+def test_problem_aldrian_smith_with_texture_model(captures, tmp_path):
+    """`[texture_model]` in capture.toml: the pipeline fits A&S with it.
+
+    The simulated sphere has grey albedo 0.3 and R&H's Phong lobe (ks 0.5, s 20) under the
+    band-limited Grace lighting, so the truth is exact: L = Grace, κ_l = ks Â_l(s) =
+    0.5·[1, 21/22, 0.8696] (Funk-Hecke, R&H 2001). The texture model: mean 0.3 plus two smooth
+    components on a Fibonacci sphere of vertices. With a uniform albedo the specular DC κ_0 and
+    the diffuse DC are separable only as (albedo + κ_0)·L_00 (reported as an ambiguity); κ_1,
+    κ_2 and the lighting bands ≥ 1 are determined.
+    """
+    import math
+    import shutil
+
+    import numpy as np
+
+    cap = tmp_path / "cap"
+    shutil.copytree(captures["env"], cap)
+    v = 600
+    i = np.arange(v) + 0.5
+    z = 1 - 2 * i / v
+    ph = math.pi * (1 + 5 ** 0.5) * i
+    vert = np.stack([np.sqrt(1 - z * z) * np.cos(ph), np.sqrt(1 - z * z) * np.sin(ph), z], -1)
+    comp = np.stack([np.repeat(vert[:, :1], 3, 1), np.repeat(vert[:, 1:2], 3, 1)]) * 0.05
+    np.savez(cap / "texture.npz", mean=np.full((v, 3), 0.3), components=comp, vertices=vert)
+    with open(cap / "capture.toml", "a") as f:
+        f.write('\n[texture_model]\nfile = "texture.npz"\n')
+    r = _run(cap, tmp_path / "o", "--problem", "aldrian-smith", "--lmax", "2")
+    a = r["aldrian_smith"]
+    assert a["albedo_model"].startswith("texture model (2 principal components")
+    kappa = [0.5, 0.5 * 21 / 22, 0.5 * 10.5 * (3 / 23 - 1 / 21)]
+    k = a["specular_low_kappa"]
+    assert max(abs(k[i] - kappa[i]) for i in (1, 2)) < 0.01
+    est = r["lighting"]["coefficients"]
+    err = max(abs(e - t) for re, rt in zip(est[1:], GRACE_RH2001[1:]) for e, t in zip(re, rt))
+    assert err < 3e-3 * GRACE_RH2001[0][0]
+    for c in range(3):  # the determined DC combination
+        dc, dc_t = (a["albedo_mean"][c] + k[0]) * est[0][c], 0.8 * GRACE_RH2001[0][c]
+        assert abs(dc - dc_t) < 5e-3 * dc_t
+    assert any(x["name"].startswith("specular DC") for x in r["ambiguities"])
+    assert max(abs(b) for b in a["texture_coefficients"]) < 0.2

@@ -10,10 +10,11 @@ from __future__ import annotations
 import math
 
 import torch
-from _inverse_helpers import unit
 from brdfcap.fit.brdf_models import BRDFSpec, render_sh
 from brdfcap.fit.inverse_brdf import fit_brdf_sh
 from brdfcap.fit.sh import band_of_index
+
+from brdfcap.testing import unit
 
 
 def test_prediction_uses_band_norm():

@@ -13,10 +13,11 @@ import math
 
 import pytest
 import torch
-from _inverse_helpers import unit
 from brdfcap.fit.brdf_models import BRDFSpec, render_sh
 from brdfcap.fit.inverse_brdf import fit_brdf_sh
 from brdfcap.fit.sh import real_sh
+
+from brdfcap.testing import unit
 
 
 @pytest.mark.parametrize("cone_deg,aliased", [(180.0, False), (90.0, True)])

@@ -13,7 +13,6 @@ import math
 
 import pytest
 import torch
-from _inverse_helpers import unit
 from brdfcap.fit.brdf_models import BRDFSpec
 from brdfcap.fit.envmap import (
     latlong_directions,
@@ -23,6 +22,8 @@ from brdfcap.fit.envmap import (
 )
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index
+
+from brdfcap.testing import unit
 
 
 @pytest.fixture(autouse=True)

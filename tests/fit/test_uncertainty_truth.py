@@ -14,12 +14,13 @@ from pathlib import Path
 
 import pytest
 import torch
-from _inverse_helpers import unit
 from brdfcap.fit.brdf_models import BRDFSpec
 from brdfcap.fit.conditioning import predicted_lstar, suggest_lmax
 from brdfcap.fit.envmap import latlong_directions, latlong_weights, project_envmap, read_envmap
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index, real_sh
+
+from brdfcap.testing import unit
 
 REPO = Path(__file__).resolve().parents[2]
 _CANDIDATES = [REPO / ".." / "shared" / "reference", Path("/work/shared/reference")]
