@@ -84,8 +84,9 @@ def _theta_phi(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 @dataclass
 class SphericalAngles:
-    """``θi, θo`` in ``[0, π]``; ``φi, φo`` in ``(-π, π]``; ``φ = φi - φo`` wrapped to
-    ``(-π, π]`` (radians, all ``(*,)``).
+    """Spherical angles of ``(ωi, ωo)`` in the local frame (radians, all ``(*,)``).
+
+    ``θi, θo`` in ``[0, π]``; ``φi, φo`` in ``(-π, π]``; ``φ = φi - φo`` wrapped to ``(-π, π]``.
     """
 
     theta_i: torch.Tensor
@@ -108,8 +109,9 @@ def spherical_angles(wi: torch.Tensor, wo: torch.Tensor, n: torch.Tensor) -> Sph
 
 @dataclass
 class RusinkiewiczAngles:
-    """Half/difference angles of [Rus1998]_: ``θh, θd`` in ``[0, π]``, ``φh, φd`` in
-    ``(-π, π]`` (radians, all ``(*,)``).
+    """Half/difference angles of [Rus1998]_ (radians, all ``(*,)``).
+
+    ``θh, θd`` in ``[0, π]``, ``φh, φd`` in ``(-π, π]``.
     """
 
     theta_h: torch.Tensor
@@ -153,8 +155,9 @@ def rusinkiewicz_angles(wi: torch.Tensor, wo: torch.Tensor, n: torch.Tensor
 def rusinkiewicz_to_directions(theta_h: torch.Tensor, phi_h: torch.Tensor,
                                theta_d: torch.Tensor, phi_d: torch.Tensor
                                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Local ``(wi, wo) (*, 3)`` for half/difference angles (inverse of
-    :func:`rusinkiewicz_angles` in the local frame, normal ``+z``).
+    """Return local ``(wi, wo) (*, 3)`` for half/difference angles.
+
+    The inverse of :func:`rusinkiewicz_angles` in the local frame (normal ``+z``).
     """
     def sph(t, p):
         return torch.stack([torch.sin(t) * torch.cos(p), torch.sin(t) * torch.sin(p),

@@ -180,8 +180,10 @@ def pose_difference_rms(mesh: Mesh, camera: CameraModel, pose_a: np.ndarray,
 
 def perturb_pose(world_to_camera: np.ndarray, center: np.ndarray, angle_deg: float,
                  shift: float, seed: int = 0) -> np.ndarray:
-    """Rotate the camera about the object ``center`` by ``angle_deg`` (random axis) and move it
-    by ``shift`` world units (random direction): a synthetic pose error.
+    """Perturb a pose: a synthetic pose error.
+
+    Rotate the camera about the object ``center`` by ``angle_deg`` (random axis) and move it by
+    ``shift`` world units (random direction).
     """
     rng = np.random.default_rng(seed)
     axis = rng.standard_normal(3)
@@ -228,9 +230,10 @@ FD_STEP = 1e-6
 
 
 def _jacobian(residual_fn, pose: torch.Tensor, d0: torch.Tensor) -> torch.Tensor:
-    """``(K, 6)`` Jacobian of the residuals w.r.t. a left increment, by central differences
-    (6 unknowns against thousands of residuals: cheaper than autograd's row-by-row reverse
-    mode, and free of its per-op dispatch cost).
+    """Return the ``(K, 6)`` Jacobian of the residuals w.r.t. a left increment.
+
+    By central differences: 6 unknowns against thousands of residuals is cheaper than
+    autograd's row-by-row reverse mode, and free of its per-op dispatch cost.
     """
     scale = max(float(torch.linalg.norm(pose[:, 3])), 1e-12)
     cols = []
@@ -346,8 +349,9 @@ def render_silhouette(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarr
 
 def render_coverage(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray,
                     supersample: int = 8, scene=None) -> np.ndarray:
-    """``(H, W)`` float fraction of each pixel covered by the mesh (``supersample²`` rays per
-    pixel on a regular grid): an anti-aliased foreground matte.
+    """Return the ``(H, W)`` fraction of each pixel covered by the mesh (anti-aliased matte).
+
+    ``supersample²`` rays per pixel on a regular grid.
     """
     from dataclasses import replace
 
@@ -361,8 +365,10 @@ def render_coverage(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray
 
 
 def _alpha_offset(alpha: np.ndarray, nx: np.ndarray, ny: np.ndarray) -> np.ndarray:
-    """Signed distance (pixels, + outside) from a pixel centre to a straight edge that covers
-    the fraction ``alpha`` of the unit pixel, the edge's outward normal being ``(nx, ny)``.
+    """Return the signed distance (pixels, + outside) from a pixel centre to an edge.
+
+    The straight edge covers the fraction ``alpha`` of the unit pixel, its outward normal
+    being ``(nx, ny)``.
 
     Inverse of the exact coverage of a unit square cut by a half-plane: linear,
     ``alpha = 1/2 - d/a``, while the edge crosses two opposite sides (``|d| <= (a-b)/2``), and a
@@ -468,8 +474,10 @@ class _EdgeTable:
 
 
 def _bilinear(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Sample an ``(H, W)`` image at continuous pixels ``(N, 2)`` (centres at +0.5), clamped to
-    the border outside the image. Plain indexing arithmetic, so forward-mode AD works.
+    """Sample an ``(H, W)`` image at continuous pixels ``(N, 2)`` (centres at +0.5).
+
+    Clamped to the border outside the image. Plain indexing arithmetic, so forward-mode AD
+    works.
     """
     h, w = img.shape
     x = (uv[:, 0] - 0.5).clamp(0, w - 1)
@@ -562,8 +570,10 @@ def refine_pose(mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarray,
         correspondence_weight = CORRESPONDENCE_WEIGHT
 
     def select(pose_np: np.ndarray) -> torch.Tensor:
-        """Contour points on the outer silhouette: near the rendered outline, and the ray
-        through their projection nudged :data:`OUTWARD_PX` outward misses the mesh.
+        """Select contour points on the outer silhouette.
+
+        Near the rendered outline, and the ray through their projection nudged
+        :data:`OUTWARD_PX` outward misses the mesh.
         """
         pts = edges.contour_points(camera, pose_np)
         rend = render_silhouette(mesh, camera, pose_np, scene)
