@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from brdfcap.capture.probes import read_envmap
 from brdfcap.fit.brdf_models import BRDFSpec
 from brdfcap.fit.conditioning import predicted_lstar, suggest_lmax
-from brdfcap.fit.envmap import latlong_directions, latlong_weights, project_envmap, read_envmap
+from brdfcap.fit.envmap import latlong_directions, latlong_weights, project_envmap
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index, real_sh
 
