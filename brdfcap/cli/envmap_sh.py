@@ -10,6 +10,7 @@ signs, index ``l(l+1)+m``.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import click
@@ -52,12 +53,13 @@ def envmap_sh_cmd(probe: Path, lmax: int, as_json: bool, out: Path | None, windo
         return
     chans = "RGB"[: res.coeffs.shape[1]] if res.coeffs.shape[1] <= 3 else \
         [f"c{i}" for i in range(res.coeffs.shape[1])]
-    click.echo(f"# {probe}  ({res.shape[0]}x{res.shape[1]}), lmax={lmax}, "
+    click.echo(f"# {probe}  ({res.shape[1]}x{res.shape[0]} pixels, width x height), lmax={lmax}, "
                f"quadrature={res.quadrature}, window={res.window}")
     click.echo(f"# frame: {res.frame}")
     click.echo("# real SH, R&H 2001 signs, index l(l+1)+m")
     for n in res.notes:
         click.echo(f"# note: {n}")
     click.echo("  l    m " + "".join(f"{c:>12}" for c in chans))
-    for row in doc["coefficients"]:
-        click.echo(f"{row['l']:>3} {row['m']:>4} " + "".join(f"{v:12.6f}" for v in row["value"]))
+    for k, row in enumerate(doc["coefficients"]):  # index k = l(l+1)+m
+        l = math.isqrt(k)
+        click.echo(f"{l:>3} {k - l * (l + 1):>4} " + "".join(f"{v:12.6f}" for v in row))
