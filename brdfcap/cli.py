@@ -14,6 +14,7 @@ import click
 
 from brdfcap import __version__
 from brdfcap.core.errors import BrdfcapError
+from brdfcap.fit.brdf import BRDF_NAMES
 
 __all__ = ["main"]
 
@@ -70,7 +71,7 @@ def _batch_echo(line: str) -> None:
                    "(bilinear, or R&H's microfacet decomposition with known source directions), "
                    "or Aldrian & Smith's photometric model; auto = Lambertian lighting "
                    "(environment) or albedo (directional).")
-@click.option("--brdf", type=click.Choice(["lambertian", "phong", "microfacet", "mirror"]),
+@click.option("--brdf", type=click.Choice(BRDF_NAMES),  # the BRDF-model registry, live
               default=None, help="BRDF model (default: capture.toml [material].model).")
 @click.option("--rule", type=click.Choice(["gcv", "discrepancy", "none"]), default="gcv",
               show_default=True, help="How the Tikhonov weight is chosen (docs/fitting.md).")
