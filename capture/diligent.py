@@ -294,15 +294,16 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
                              albedo_texture: bool = False, noise_rel: float = 0.0,
                              gain: float = 1.0, intensity_range=(0.6, 1.4),
                              normals_error: str | None = None, seed: int = 0,
-                             normal_files=("mat", "txt"), spp: int = 4) -> dict:
+                             normal_files=("mat", "txt"), spp: int = 1) -> dict:
     """Render a sphere in the DiLiGenT layout with a known Lambertian + Phong BRDF.
 
     Orthographic view of a unit sphere filling ``0.9·size`` pixels, lights on
     :func:`diligent_light_grid`, per-light RGB intensities drawn from ``intensity_range``,
     rendered by the reference renderer (:func:`brdfcap.capture.reference.render_lights`, the
     registered ``phong`` model's point evaluation) averaged over ``spp`` rays per pixel
-    (:func:`brdfcap.capture.simulate.pixel_offsets`; the pixel footprint, not its centre, as a
-    camera sees it; ``spp = 1`` samples the centre), radiance ``B``, pixel code
+    (:func:`brdfcap.capture.simulate.pixel_offsets`; ``spp > 1`` averages the pixel footprint
+    as a camera does; the default 1 samples the centre, where the normals are given), radiance
+    ``B``, pixel code
     ``round(65535 · clip(gain · B · (1 + noise_rel · N(0,1)), 0, 1))``: 16-bit quantisation,
     real clipping at the top of the range (the specular peaks saturate for the default
     parameters) and a noise floor at 0 in attached shadows.

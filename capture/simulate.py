@@ -10,7 +10,8 @@ Renderers (scene key ``renderer``):
 
 * ``"reference"`` (:mod:`brdfcap.capture.reference`): numerical integration of the registered
   BRDF model's point evaluation against the lighting (a probe, or SH lighting reconstructed as
-  a probe), lights in closed form, each pixel averaged over ``[render] spp`` rays. Independent
+  a probe), lights in closed form, each pixel averaged over ``[render] spp`` rays (default 1:
+  the pixel centre, where the fits sample the geometry). Independent
   of the SH-domain forward models the fits invert.
 * ``"sh"``: R&H's SH-domain forward model (:func:`brdfcap.fit.brdf_models.render_sh`), one ray
   per pixel. Exact only for a Lambertian surface under band-limited SH lighting, which is
@@ -278,7 +279,7 @@ def load_scene(path: str | Path) -> Scene:
     rt = doc.get("render", {})
     _warn_unknown(rt, "render", "render.", notes)
     render = {"rel_tol": float(rt.get("rel_tol", 1e-3)),
-              "spp": int(rt.get("spp", 4 if renderer == "reference" else 1)),
+              "spp": int(rt.get("spp", 1)),   # pixel centres, as the fits sample them
               "max_samples": int(rt.get("max_samples", 1 << 14)),
               "seed": int(rt.get("seed", 0)),
               "probe_interpolation": str(rt.get("probe_interpolation",

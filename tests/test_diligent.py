@@ -38,8 +38,8 @@ TRUTH = dict(kd=(0.7, 0.5, 0.35), ks=(0.3, 0.25, 0.2), shininess=25.0)
 def layout(tmp_path_factory):
     """Textured-albedo sphere, 0.5 % pixel noise, both normal files written.
 
-    One ray per pixel centre (``spp=1``), where the ground-truth normals are given: averaging
-    the pixel footprint (the generator's default, 4 rays) broadens the lobe the fit sees at
+    One ray per pixel centre (``spp=1``, the default), where the ground-truth normals are
+    given: averaging the pixel footprint (``spp=4``) broadens the lobe the fit sees at
     the centre normal, measured −1.9 % in s at 48 px — a model error, not noise, that these
     1 % and 5-sigma checks are not about.
     """
