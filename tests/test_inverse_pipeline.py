@@ -120,7 +120,8 @@ def test_problem_decomposition_round_trip():
     from brdfcap.fit.problems import solve_problem
 
     g = torch.Generator().manual_seed(0)
-    n = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64), dim=-1)
+    n = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64),
+                                      dim=-1)
     wo = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64)
                                        + 2 * n, dim=-1)
     refl = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
