@@ -34,10 +34,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
+from brdfcap.fit.brdf import make_brdf
 
 from brdfcap.core.errors import CaptureError
 
 from .images import read_pixels
+from .reference import render_lights
+from .simulate import pixel_offsets
 
 __all__ = ["DiligentData", "read_diligent", "import_diligent", "write_synthetic_diligent",
            "is_diligent_dir", "diligent_light_grid", "DILIGENT_WORLD_TO_CAMERA",
@@ -78,7 +82,7 @@ class DiligentData:
 
 
 def is_diligent_dir(path: str | Path) -> bool:
-    """True when ``path`` looks like a DiLiGenT-layout directory (light_directions.txt present)."""
+    """Return whether ``path`` looks like a DiLiGenT-layout directory (light_directions.txt)."""
     p = Path(path)
     return p.is_dir() and (p / "light_directions.txt").is_file()
 
@@ -273,7 +277,7 @@ def _write_png16(path: Path, codes: np.ndarray) -> None:
 
 
 def diligent_light_grid(n: int = 96, half_angle_deg: float = 40.0) -> np.ndarray:
-    """Unit light directions on a DiLiGenT-like rectangular grid, ``(n, 3)``, toward the light.
+    """Return unit light directions on a DiLiGenT-like grid, ``(n, 3)``, toward the light.
 
     DiLiGenT's 96 lights sit on a roughly 12×8 rectangular frame in front of the object; here
     ``n`` directions ``(x, y, 1)/|·|`` with ``x, y`` on a ``nx × ny`` grid (``nx/ny ≈ 3/2``)
@@ -294,12 +298,16 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
                              albedo_texture: bool = False, noise_rel: float = 0.0,
                              gain: float = 1.0, intensity_range=(0.6, 1.4),
                              normals_error: str | None = None, seed: int = 0,
-                             normal_files=("mat", "txt")) -> dict:
+                             normal_files=("mat", "txt"), spp: int = 1) -> dict:
     """Render a sphere in the DiLiGenT layout with a known Lambertian + Phong BRDF.
 
     Orthographic view of a unit sphere filling ``0.9·size`` pixels, lights on
     :func:`diligent_light_grid`, per-light RGB intensities drawn from ``intensity_range``,
-    model :func:`brdfcap.fit.diligent_fit.phong_radiance` (radiance ``B``), pixel code
+    rendered by the reference renderer (:func:`brdfcap.capture.reference.render_lights`, the
+    registered ``phong`` model's point evaluation) averaged over ``spp`` rays per pixel
+    (:func:`brdfcap.capture.simulate.pixel_offsets`; ``spp > 1`` averages the pixel footprint
+    as a camera does; the default 1 samples the centre, where the normals are given), radiance
+    ``B``, pixel code
     ``round(65535 · clip(gain · B · (1 + noise_rel · N(0,1)), 0, 1))``: 16-bit quantisation,
     real clipping at the top of the range (the specular peaks saturate for the default
     parameters) and a noise floor at 0 in attached shadows.
@@ -317,8 +325,6 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
     dict
         The ground truth, also written to ``out/ground_truth.json`` (not part of the layout).
     """
-    from brdfcap.fit.diligent_fit import phong_radiance
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -331,21 +337,40 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
     mask = r2 < 1.0
     z = np.sqrt(np.clip(1.0 - r2, 0.0, None))
     normals = np.where(mask[..., None], np.stack([x, y, z], -1), 0.0)
-    kd_map = np.broadcast_to(np.asarray(kd, np.float64), (h, w, 3)).copy()
-    if albedo_texture:
-        kd_map *= (0.75 + 0.25 * np.cos(3.0 * x) * np.cos(2.0 * y))[..., None]
+
+    def kd_of(xx, yy):
+        k = np.broadcast_to(np.asarray(kd, np.float64), (*xx.shape, 3)).copy()
+        if albedo_texture:
+            k *= (0.75 + 0.25 * np.cos(3.0 * xx) * np.cos(2.0 * yy))[..., None]
+        return k
+
+    # sub-pixel samples: normals, albedo and coverage of every ray of every object pixel
+    subs = []
+    for du, dv in pixel_offsets(spp):
+        sx, sy = (u[mask] + du - w / 2) / rad, -(v[mask] + dv - h / 2) / rad
+        s2 = sx * sx + sy * sy
+        inside = s2 < 1.0
+        sn = np.stack([sx, sy, np.sqrt(np.clip(1.0 - s2, 0.0, None))], -1)
+        subs.append((torch.as_tensor(sn[inside]), kd_of(sx, sy)[inside], inside))
+    lobe = make_brdf("phong", kd=[0.0] * 3, ks=np.asarray(ks, np.float64), s=shininess)
+    white = make_brdf("lambertian", kd=[1.0] * 3)
     dirs = diligent_light_grid(n_lights)
     lo, hi = intensity_range
     ints = rng.uniform(lo, hi, size=(n_lights, 3))
     names = []
     n_sat = []
-    nm = normals[mask]
     for k in range(n_lights):
         img = np.zeros((h, w, 3))
-        wo = np.broadcast_to([0.0, 0.0, 1.0], nm.shape)
-        wi = np.broadcast_to(dirs[k], nm.shape)
-        e = np.broadcast_to(ints[k], nm.shape)
-        img[mask] = phong_radiance(nm, wo, wi, e, kd_map[mask], np.asarray(ks), shininess)
+        acc = np.zeros((int(mask.sum()), 3))
+        for sn, skd, inside in subs:
+            wo = torch.zeros_like(sn)
+            wo[:, 2] = 1.0
+            wi = torch.as_tensor(dirs[k]).expand_as(sn)
+            e = torch.as_tensor(ints[k])
+            b = render_lights(white, sn, wo, wi, e).numpy() * skd + \
+                render_lights(lobe, sn, wo, wi, e).numpy()
+            acc[inside] += b / len(subs)
+        img[mask] = acc
         img = gain * img
         if noise_rel > 0:
             img = img * (1.0 + noise_rel * rng.standard_normal(img.shape))
@@ -379,7 +404,8 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
              "albedo_texture": albedo_texture, "gain": gain, "noise_rel": noise_rel,
              "size": size, "n_lights": n_lights, "normals_error": normals_error,
              "saturated_pixels_per_image": n_sat, "object_pixels": int(mask.sum()),
-             "model": "lambertian+phong (brdfcap.fit.diligent_fit.phong_radiance)"}
+             "model": "lambertian+phong (registered models, brdfcap.capture.reference."
+                      "render_lights)", "renderer": {"name": "reference", "spp": spp}}
     if gain != 1.0:
         truth["note"] = "pixel = gain * B: the recovered kd and ks are scaled by gain"
     (out / "ground_truth.json").write_text(json.dumps(truth, indent=2))

@@ -18,18 +18,23 @@ Environment lighting (:func:`render_environment`)
       into ``k × k`` sub-cells weighted by their exact solid angle
       ``Δφ (cosθ_top − cosθ_bottom)``; ``k = 1, 2, 4, …`` until the midpoint-rule error
       estimate ``|E_2k − E_k| / 3`` (Richardson, error ``O(k⁻²)``) is below the tolerance.
-    * **Specular lobes with a sampler** (Phong, Beckmann, GGX): importance sampling of the
-      model's lobe with randomised quasi-Monte Carlo (scrambled Sobol points, Owen 1997, and
-      a random Cranley–Patterson shift per pixel), ``R = 8`` independent replicates; the
-      sample count per pixel doubles until the replicates' standard error is below the
-      tolerance (only for the pixels not yet converged). The estimate is
-      ``mean(f cos L / pdf)``: the sampler changes the variance only, never the expectation.
+    * **Specular lobes with a sampler** (Phong, Beckmann, GGX): the integral is mapped to the
+      unit square by the model's importance sampler (``ω = S(u)``, density ``pdf``) and
+      integrated there by a product rule — Gauss–Legendre in ``u₁`` (the lobe's polar
+      coordinate) × the midpoint rule in ``u₂`` (its azimuth, periodic) — of ``n × 2n``
+      nodes, ``n = 8, 16, 32, …`` per pixel until ``|B_2n − B_n|`` (which bounds the coarser
+      rule's error, so the finer one's is smaller) is below the tolerance; only the pixels
+      not yet converged are refined. The integrand ``f cos L / pdf`` is the point evaluation
+      divided by the sampler's density: the sampler changes how fast it converges, never
+      the value it converges to.
     * **Specular lobes without a sampler** (a model registered without one): the texel
       quadrature above applied to the full specular transfer ``f_s cos``.
     * **Mirror** (a Dirac lobe): ``ks · L(r)`` by bilinear lookup at ``r = 2(n·ωo)n − ωo``.
 
-    The tolerance: per pixel, estimated error ≤ ``rel_tol · max(B, floor)`` with ``floor`` =
-    1 % of the image's median radiance (so black pixels need not converge relatively). The
+    The tolerance: per pixel, estimated error ≤ ``rel_tol · max(B⁺, floor)`` where ``B⁺`` is
+    the same integral of ``|L|`` (``= B`` for any real, non-negative probe; for an SH
+    reconstruction that rings negative it keeps the criterion finite) and ``floor`` is 1 % of
+    the image's median radiance (so black pixels need not converge relatively). The
     measured errors are returned with ``return_info=True``.
 
 Lights (:func:`render_lights`)
@@ -47,13 +52,12 @@ from dataclasses import dataclass
 
 import torch
 from brdfcap.fit.brdf import BRDFModel, as_brdf_model
+from scipy.special import roots_legendre
 
 __all__ = ["LatLongProbe", "render_environment", "render_lights", "irradiance_quadrature",
-           "probe_lookup", "DEFAULT_MAX_SAMPLES", "REPLICATES"]
+           "probe_lookup", "DEFAULT_MAX_SAMPLES", "INTERPOLATIONS"]
 
 DEFAULT_MAX_SAMPLES = 1 << 16
-#: Independent RQMC replicates used for the error estimate.
-REPLICATES = 8
 _CHUNK = 1 << 21        # elements per batched evaluation (pixels × samples or × texels)
 #: How the probe's texels are interpolated into a function on the sphere (module doc).
 INTERPOLATIONS = ("bilinear", "cubic")
@@ -63,11 +67,14 @@ INTERPOLATIONS = ("bilinear", "cubic")
 class LatLongProbe:
     """A lat-long radiance probe ``(H, W, C)`` (frame of ``docs/conventions.md``) as a function.
 
-    ``radiance(dirs)`` interpolates bilinearly between texel centres (module doc).
+    ``radiance(dirs)`` interpolates between texel centres (module doc). ``rotation`` ``(3, 3)``
+    turns the probe in the world: a light the image shows at direction ``d`` arrives from
+    ``R d`` (the convention of :func:`brdfcap.fit.rotation.rotate_sh`).
     """
 
     image: torch.Tensor
     interpolation: str = "bilinear"
+    rotation: torch.Tensor | None = None
 
     def __post_init__(self):
         if self.interpolation not in INTERPOLATIONS:
@@ -89,7 +96,8 @@ class LatLongProbe:
 
     def to(self, device) -> LatLongProbe:
         """Return the probe on ``device``."""
-        return LatLongProbe(self.image.to(device), self.interpolation)
+        rot = None if self.rotation is None else self.rotation.to(device, torch.float64)
+        return LatLongProbe(self.image.to(device), self.interpolation, rot)
 
     def radiance(self, dirs: torch.Tensor) -> torch.Tensor:
         """Interpolated radiance ``(..., C)`` arriving from unit directions ``dirs`` ``(..., 3)``.
@@ -99,6 +107,8 @@ class LatLongProbe:
         """
         h, w = self.height, self.width
         img = self.image.to(dirs.device)
+        if self.rotation is not None:  # probe-frame direction Rᵀ d (row vectors: d R)
+            dirs = dirs @ self.rotation.to(device=dirs.device, dtype=dirs.dtype)
         z = dirs[..., 2].clamp(-1.0, 1.0)
         theta = torch.acos(z)
         phi = torch.atan2(dirs[..., 1], dirs[..., 0]) % (2.0 * math.pi)
@@ -136,6 +146,8 @@ class LatLongProbe:
         st, ct = torch.sin(th)[:, None], torch.cos(th)[:, None]
         d = torch.stack([st * torch.cos(ph)[None], st * torch.sin(ph)[None],
                          ct.expand(-1, wk)], -1).reshape(-1, 3)
+        if self.rotation is not None:
+            d = d @ self.rotation.to(device=device, dtype=torch.float64).T   # world R d
         if k == 1:
             lw = self.image.to(device).reshape(-1, self.image.shape[2])
         else:
@@ -186,13 +198,13 @@ def irradiance_quadrature(normal: torch.Tensor, probe, k: int = 1) -> torch.Tens
     return _texel_sum(tr, normal, normal, dirs, lw)
 
 
-def _converge_quadrature(fn, rel_tol, floor_of, k_max=8):
-    """Run ``fn(k)`` for k = 1, 2, 4 … until ``|F_2k − F_k|/3 ≤ rel_tol/2 · max(|F|, floor)``."""
+def _converge_quadrature(fn, rel_tol, scale_of, k_max=8):
+    """Run ``fn(k)`` for k = 1, 2, 4 … until ``|F_2k − F_k|/3 ≤ rel_tol/2 · scale``."""
     prev, k = fn(1), 2
     while True:
         cur = fn(k)
         err = (cur - prev).abs() / 3.0
-        scale = torch.maximum(cur.abs(), torch.as_tensor(floor_of(cur), device=cur.device))
+        scale = scale_of(cur)
         rel = (err / scale.clamp_min(1e-300)).amax(-1) if cur.numel() else cur.new_zeros(0)
         ok = bool((rel <= 0.5 * rel_tol).all())   # factor 2 margin on the estimate
         if ok or k >= k_max:
@@ -209,53 +221,68 @@ def _floor(x: torch.Tensor) -> float:
     return 0.01 * float(x.abs().amax(-1).median())
 
 
+def _scale(absolute: torch.Tensor, floor: float) -> torch.Tensor:
+    """Per-pixel error scale: ``max(∫ f cos |L| dω, floor)`` (module doc)."""
+    return absolute.clamp_min(floor).clamp_min(1e-300)
+
+
+def _gauss01(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    x, w = roots_legendre(n)
+    return (torch.as_tensor(0.5 * (x + 1.0), dtype=torch.float64, device=device),
+            torch.as_tensor(0.5 * w, dtype=torch.float64, device=device))
+
+
+def _lobe_rule(model: BRDFModel, normal, wo, probe: LatLongProbe, n1: int):
+    """``(B, B⁺)`` ``(N, C)`` by the product rule of order ``n1`` in the sampler's coordinates."""
+    dev = normal.device
+    x1, w1 = _gauss01(n1, dev)
+    n2 = 2 * n1
+    x2 = (torch.arange(n2, dtype=torch.float64, device=dev) + 0.5) / n2
+    u = torch.stack(torch.meshgrid(x1, x2, indexing="ij"), -1).reshape(-1, 2)   # (S, 2)
+    wq = (w1[:, None] / n2).expand(n1, n2).reshape(-1)                             # (S,)
+    n_pix, c, s = normal.shape[0], probe.image.shape[2], u.shape[0]
+    out = torch.zeros(n_pix, c, dtype=torch.float64, device=dev)
+    out_abs = torch.zeros_like(out)
+    step = max(1, _CHUNK // s)
+    for a in range(0, n_pix, step):
+        nrm, w_o = normal[a:a + step], wo[a:a + step]
+        m = nrm.shape[0]
+        wi, pdf = model.sample_specular(nrm, w_o, u[None].expand(m, s, 2))
+        wi_f = torch.nn.functional.normalize(wi.reshape(-1, 3), dim=-1)
+        f = model.eval_specular_cos(nrm[:, None].expand(m, s, 3).reshape(-1, 3), wi_f,
+                                    w_o[:, None].expand(m, s, 3).reshape(-1, 3))
+        pdf = pdf.reshape(-1, 1)
+        val = f * probe.radiance(wi_f) / pdf
+        val = torch.where(torch.isfinite(val) & (pdf > 0), val, torch.zeros_like(val))
+        val = val.reshape(m, s, c) * wq[None, :, None]
+        out[a:a + step] = val.sum(1)
+        out_abs[a:a + step] = val.abs().sum(1)
+    return out, out_abs
+
+
 def _sampled_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, max_samples,
-                      seed, floor):
-    """RQMC estimate of the specular term (module doc); returns ``(B (N, C), info)``."""
+                      floor):
+    """Lobe quadrature of the specular term (module doc); returns ``(B (N, C), info)``."""
     n_pix, c = normal.shape[0], probe.image.shape[2]
     dev = normal.device
     out = torch.zeros(n_pix, c, dtype=torch.float64, device=dev)
     rel_out = torch.zeros(n_pix, dtype=torch.float64, device=dev)
     spp = torch.zeros(n_pix, dtype=torch.long, device=dev)
     active = torch.arange(n_pix, device=dev)
-    gen = torch.Generator().manual_seed(seed)
-    n = 32
-    rounds = 0
+    n1 = 4
+    prev, _ = _lobe_rule(model, normal, wo, probe, n1)
     while active.numel():
-        est = torch.zeros(REPLICATES, active.numel(), c, dtype=torch.float64, device=dev)
-        for r in range(REPLICATES):
-            sob = torch.quasirandom.SobolEngine(2, scramble=True,
-                                                seed=seed * 7919 + 97 * rounds + r).draw(n)
-            sob = sob.to(dtype=torch.float64, device=dev)
-            shift = torch.rand(active.numel(), 1, 2, generator=gen, dtype=torch.float64).to(dev)
-            step = max(1, _CHUNK // n)
-            for a in range(0, active.numel(), step):
-                idx = active[a:a + step]
-                u = torch.remainder(sob[None] + shift[a:a + step], 1.0)
-                nrm, w_o = normal[idx], wo[idx]
-                wi, pdf = model.sample_specular(nrm, w_o, u)
-                m, s = wi.shape[:2]
-                wi_f = torch.nn.functional.normalize(wi.reshape(-1, 3), dim=-1)
-                f = model.eval_specular_cos(nrm[:, None].expand(m, s, 3).reshape(-1, 3), wi_f,
-                                            w_o[:, None].expand(m, s, 3).reshape(-1, 3))
-                val = f * probe.radiance(wi_f) / pdf.reshape(-1, 1)
-                val = torch.where(torch.isfinite(val) & (pdf.reshape(-1, 1) > 0), val,
-                                  torch.zeros_like(val))
-                est[r, a:a + step] = val.reshape(m, s, c).mean(1)
-        mean = est.mean(0)
-        se = est.std(0, unbiased=True) / math.sqrt(REPLICATES)
-        scale = mean.abs().clamp_min(floor).clamp_min(1e-300)
-        rel = (se / scale).amax(-1)
+        n1 *= 2
+        cur, cur_abs = _lobe_rule(model, normal[active], wo[active], probe, n1)
+        err = (cur - prev).abs()              # error estimate of the coarser rule: conservative
+        rel = (err / _scale(cur_abs, floor)).amax(-1)
         done = rel <= rel_tol
-        last = REPLICATES * n * 2 > max_samples
-        if last:
+        if 2 * (2 * n1) ** 2 > max_samples:
             done = torch.ones_like(done)
         ids = active[done]
-        out[ids], rel_out[ids], spp[ids] = mean[done], rel[done], REPLICATES * n
-        active = active[~done]
-        n *= 2
-        rounds += 1
-    info = {"method": "rqmc-importance", "replicates": REPLICATES,
+        out[ids], rel_out[ids], spp[ids] = cur[done], rel[done], 2 * n1 * n1
+        active, prev = active[~done], cur[~done]
+    info = {"method": "lobe-quadrature",
             "samples_per_pixel_max": int(spp.max()) if n_pix else 0,
             "samples_per_pixel_mean": float(spp.double().mean()) if n_pix else 0.0,
             "max_rel_err": float(rel_out.max()) if n_pix else 0.0,
@@ -282,9 +309,9 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
     rel_tol : float
         Target relative error per pixel (module doc: relative to ``max(B, floor)``).
     max_samples : int
-        Cap on importance samples per pixel (all replicates together).
+        Cap on lobe-quadrature nodes per pixel (the finest rule used).
     seed : int
-        Seed of the randomised QMC points (results are deterministic given the seed).
+        Kept for API stability; every rule here is deterministic.
     return_info : bool
         Also return a dict with the method and measured error of every term.
 
@@ -304,8 +331,11 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
     if kd.numel() not in (1, c):
         raise ValueError(f"model has {kd.numel()} colour channels, probe has {c}")
     if bool((kd != 0).any()):
+        e_abs = irradiance_quadrature(normal, LatLongProbe(p.image.abs(), p.interpolation,
+                                                           p.rotation), 1)
+        fl = _floor(e_abs)
         e, inf = _converge_quadrature(lambda k: irradiance_quadrature(normal, p, k), rel_tol,
-                                      _floor)
+                                      lambda cur: _scale(e_abs, fl))
         out = out + e * kd / math.pi
         info["terms"]["diffuse"] = {"method": "texel-quadrature", **inf}
     if m.has_specular and bool((m.specular_scale != 0).any()):
@@ -315,14 +345,15 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
             info["terms"]["specular"] = {"method": "mirror-lookup", "max_rel_err": 0.0,
                                          "converged": True}
         else:
+            # floor: 1 % of the median diffuse radiance, or of a white lobe's under the mean |L|
             floor = _floor(out) if bool((kd != 0).any()) else 0.0
-            probe_mean = float(p.image.abs().mean())
-            floor = max(floor, 1e-2 * probe_mean * float(m.specular_scale.abs().max()))
+            floor = max(floor, 1e-2 * float(p.image.abs().mean())
+                        * float(m.specular_scale.abs().max()))
             trial = m.sample_specular(normal[:1], wo[:1],
                                       torch.full((1, 1, 2), 0.5, dtype=torch.float64,
                                                  device=normal.device)) if n_pix else None
             if trial is not None or n_pix == 0:
-                s, inf = _sampled_specular(m, normal, wo, p, rel_tol, max_samples, seed, floor)
+                s, inf = _sampled_specular(m, normal, wo, p, rel_tol, max_samples, floor)
             else:
                 def fn(k):
                     dirs, lw = p.quadrature(k, normal.device)
@@ -336,7 +367,8 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
 
                     return _texel_sum(tr, normal, wo, dirs, lw)
 
-                s, inf = _converge_quadrature(fn, rel_tol, lambda x: floor)
+                s, inf = _converge_quadrature(fn, rel_tol,
+                                              lambda cur: cur.abs().clamp_min(floor))
                 inf = {"method": "texel-quadrature", **inf}
             out = out + s
             info["terms"]["specular"] = inf

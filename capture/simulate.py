@@ -1,30 +1,73 @@
 """Synthetic capture simulator: scene description -> capture directory + ground truth.
 
-The simulator renders only the effects a scene asks for: pixel noise only when ``[noise]`` is
-present, clipping only when ``saturation`` is set. The list of effects actually applied is
-recorded in ``ground_truth.json``. Scene format: ``docs/capture-format.md#scene-files``.
+The simulator renders exactly the effects a scene asks for and records them in
+``ground_truth.json``: pixel noise only when ``[noise]`` is present, clipping only when
+``saturation`` is set, shadow rays only for a non-convex mesh under a light, the BRDF's own
+Fresnel and masking terms. Scene format: ``docs/capture-format.md#scene-files``; renderers:
+``docs/simulator.md``.
+
+Renderers (scene key ``renderer``):
+
+* ``"reference"`` (:mod:`brdfcap.capture.reference`): numerical integration of the registered
+  BRDF model's point evaluation against the lighting (a probe, or SH lighting reconstructed as
+  a probe), lights in closed form, each pixel averaged over ``[render] spp`` rays (default 1:
+  the pixel centre, where the fits sample the geometry). Independent
+  of the SH-domain forward models the fits invert.
+* ``"sh"``: R&H's SH-domain forward model (:func:`brdfcap.fit.brdf_models.render_sh`), one ray
+  per pixel. Exact only for a Lambertian surface under band-limited SH lighting, which is
+  where it is the default; anywhere else it must be asked for and ``ground_truth.json`` says
+  ``exact: false``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import tomllib
 import torch
+from brdfcap.fit.brdf import get_brdf_model
+from brdfcap.fit.brdf_models import BRDF_MODELS, BRDFSpec, render_sh
 from brdfcap.fit.datasets import SH_PRESETS
-from brdfcap.fit.render import lambertian_radiance_directional, lambertian_radiance_sh
+from brdfcap.fit.render import lambertian_radiance_sh
+from brdfcap.fit.rotation import rotate_sh, rotation_matrix
 
 from brdfcap.core.errors import CaptureError
 
 from .images import write_image
+from .reference import LatLongProbe, render_environment, render_lights
 from .types import CameraModel, NoiseModel
 
-__all__ = ["Scene", "load_scene", "simulate", "look_at", "builtin_scene_path"]
+__all__ = ["Scene", "load_scene", "simulate", "look_at", "builtin_scene_path", "view_poses",
+           "RENDERERS", "SCENE_KEYS", "HIGH_LMAX"]
+
+RENDERERS = ("reference", "sh")
+#: Band to which ``ground_truth.json`` records the true SH projection of the lighting.
+HIGH_LMAX = 32
+#: Known keys per scene table (``""`` = top level); anything else warns. ``material`` also
+#: accepts every parameter of the registered BRDF models.
+SCENE_KEYS = {
+    "": {"name", "format", "exposure", "saturation", "renderer", "geometry", "material",
+         "lighting", "camera", "views", "noise", "render", "simulation", "camera_raw", "raw",
+         "colour"},
+    "geometry": {"shape", "radius", "mesh", "units"},
+    "material": {"model", "albedo", "known"},
+    "lighting": {"kind", "sh", "coefficients", "probe", "probe_lmax", "known", "lights",
+                 "rotation_deg"},
+    "lights": {"direction", "radiance", "position", "intensity"},
+    "camera": {"model", "width", "height", "fov_deg", "fx", "fy", "cx", "cy", "pixel_size"},
+    "views": {"count", "distance", "elevation_deg"},
+    "noise": {"read", "gain", "relative", "seed"},
+    "render": {"rel_tol", "spp", "max_samples", "seed", "probe_interpolation",
+               "sh_probe_height"},
+    "simulation": {"shadows"},
+}
 
 
 @dataclass
@@ -50,6 +93,13 @@ class Scene:
     source: Path
     raw: dict = field(default_factory=dict)
     brdf: object = None  # brdfcap.fit.brdf_models.BRDFSpec of [material]
+    renderer: str = "sh"
+    renderer_exact: bool = True
+    render: dict = field(default_factory=dict)  # [render] options, defaults filled in
+    probe: np.ndarray | None = None  # (H, W, 3) lat-long radiance (lighting.probe), un-rotated
+    rotation: np.ndarray | None = None  # (3, 3) probe/SH rotation (a light at d goes to R d)
+    sources: list[dict] = field(default_factory=list)  # bright lights added to an environment
+    warnings: list[str] = field(default_factory=list)
 
 
 def builtin_scene_path(name: str = "demo") -> Path:
@@ -78,8 +128,69 @@ def _camera(tab: dict, path: Path) -> CameraModel:
                        path)
 
 
+def _warn_unknown(table: dict, section: str, where: str, out: list[str],
+                  extra: set[str] = frozenset()) -> None:
+    known = SCENE_KEYS[section] | set(extra)
+    for key in table:
+        if key not in known:
+            out.append(f"unknown scene key '{where}{key}' ignored (known: "
+                       f"{', '.join(sorted(known))})")
+
+
+def _material(mat: dict, path: Path, out: list[str]) -> BRDFSpec:
+    """``[material]`` -> :class:`BRDFSpec` of a registered model, validated per parameter."""
+    model = mat.get("model", "lambertian")
+    if model not in BRDF_MODELS:
+        raise CaptureError(f"scene key 'material.model' must be one of "
+                           f"{', '.join(BRDF_MODELS)}, got {model!r}", path)
+    cls = get_brdf_model(model)
+    params = {p.name: p for p in cls.PARAMETERS}
+    _warn_unknown(mat, "material", "material.", out, set(params) - {"kd"})
+    kw = {"kd": mat.get("albedo", [1.0, 1.0, 1.0])}
+    for name, par in params.items():
+        if name == "kd":
+            continue
+        v = mat.get(name, None)
+        if v is None:
+            if name in ("ks", "f0") and par.per_channel:
+                v = [0.0, 0.0, 0.0]          # historical default: no specular term
+            else:
+                continue
+        kw[name] = v
+    shp = cls.shape_parameter
+    if shp is not None and shp not in mat:
+        raise CaptureError(f"scene key 'material.{shp}' is required for a {model} material",
+                           path)
+    try:
+        cls(**kw)  # bounds and cross-parameter checks
+    except ValueError as exc:
+        raise CaptureError(f"scene key 'material': {exc}", path) from None
+    fields_ = {k: v for k, v in kw.items() if k in ("kd", "ks", "s", "sigma", "f0")}
+    return BRDFSpec(model, **fields_,
+                    extra={k: v for k, v in kw.items() if k not in fields_})
+
+
+def _rotation(light: dict, path: Path) -> np.ndarray | None:
+    """``lighting.rotation_deg = [rx, ry, rz]``: rotate about world x, then y, then z."""
+    if "rotation_deg" not in light:
+        return None
+    r = light["rotation_deg"]
+    if isinstance(r, (int, float)):
+        r = [0.0, 0.0, float(r)]
+    if not (isinstance(r, list) and len(r) == 3):
+        raise CaptureError("scene key 'lighting.rotation_deg' must be [rx, ry, rz] degrees (or "
+                           "one number: about +z)", path)
+    m = torch.eye(3, dtype=torch.float64)
+    for axis, ang in zip(((1, 0, 0), (0, 1, 0), (0, 0, 1)), r):
+        m = rotation_matrix(axis, math.radians(float(ang))) @ m
+    return m.numpy()
+
+
 def load_scene(path: str | Path) -> Scene:
-    """Parse a scene TOML (see ``docs/capture-format.md#scene-files``)."""
+    """Parse a scene TOML (see ``docs/capture-format.md#scene-files``).
+
+    Unknown keys are listed in :attr:`Scene.warnings` and issued as :class:`UserWarning`.
+    """
     path = Path(path)
     if not path.is_file():
         raise CaptureError("scene file not found", path)
@@ -87,7 +198,10 @@ def load_scene(path: str | Path) -> Scene:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise CaptureError(f"malformed TOML: {exc}", path) from None
+    notes: list[str] = []
+    _warn_unknown(doc, "", "", notes)
     geom = doc.get("geometry", {"shape": "sphere"})
+    _warn_unknown(geom, "geometry", "geometry.", notes)
     shape = geom.get("shape", "mesh" if "mesh" in geom else "sphere")
     mesh = None
     if shape == "mesh":
@@ -96,23 +210,15 @@ def load_scene(path: str | Path) -> Scene:
         mesh = (path.parent / geom["mesh"]).resolve()
     elif shape != "sphere":
         raise CaptureError(f"scene key 'geometry.shape' must be sphere/mesh, got {shape!r}", path)
-    mat = doc.get("material", {})
-    from brdfcap.fit.brdf_models import BRDF_MODELS, BRDFSpec
-
-    model = mat.get("model", "lambertian")
-    if model not in BRDF_MODELS:
-        raise CaptureError(f"scene key 'material.model' must be one of {BRDF_MODELS}, "
-                           f"got {model!r}", path)
-    albedo = np.asarray(mat.get("albedo", [1.0, 1.0, 1.0]), dtype=np.float64)
-    brdf = BRDFSpec(model, kd=albedo, ks=mat.get("ks", [0.0, 0.0, 0.0]),
-                    s=float(mat.get("s", 0.0)), sigma=float(mat.get("sigma", 0.0)),
-                    f0=mat.get("f0", [0.0, 0.0, 0.0]))
-    if (model == "phong" and not brdf.s > 0) or (model == "microfacet" and not brdf.sigma > 0):
-        raise CaptureError(f"scene key 'material': a {model} material needs "
-                           f"{'s > 0' if model == 'phong' else 'sigma > 0'}", path)
+    brdf = _material(doc.get("material", {}), path, notes)
+    albedo = brdf.kd.numpy().copy()
     light = doc.get("lighting", {})
+    _warn_unknown(light, "lighting", "lighting.", notes)
     kind = light.get("kind", "environment")
-    light_sh, lights = None, []
+    light_sh, lights, probe, sources = None, [], None, []
+    rot = _rotation(light, path)
+    for i, lt in enumerate(light.get("lights", [])):
+        _warn_unknown(lt, "lights", f"lighting.lights[{i}].", notes)
     if kind == "environment":
         if "coefficients" in light:
             light_sh = np.asarray(light["coefficients"], dtype=np.float64)
@@ -120,8 +226,11 @@ def load_scene(path: str | Path) -> Scene:
             from brdfcap.capture import probes as envmap  # file I/O moved out of fit/
 
             lmax = int(light.get("probe_lmax", 8))
-            probe = envmap.envmap_sh_from_file(path.parent / light["probe"], lmax)
-            light_sh = probe.coeffs.double().numpy()[:, :3]
+            img = envmap.read_envmap(path.parent / light["probe"])[..., :3].double()
+            probe = img.numpy()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                light_sh = envmap.project_envmap(img, lmax).numpy()
         else:
             name = light.get("sh", "grace-rh2001")
             if name not in SH_PRESETS:
@@ -132,6 +241,9 @@ def load_scene(path: str | Path) -> Scene:
         if light_sh.ndim != 2 or light_sh.shape[1] != 3 or int(math.isqrt(k)) ** 2 != k:
             raise CaptureError("scene lighting coefficients must be (lmax+1)^2 rows of [r,g,b]",
                                path)
+        if rot is not None:
+            light_sh = rotate_sh(torch.as_tensor(light_sh), torch.as_tensor(rot)).numpy()
+        sources = list(light.get("lights", []))  # bright sources on top of the environment
     elif kind == "directional":
         lights = light.get("lights", [])
         if not lights:
@@ -140,22 +252,59 @@ def load_scene(path: str | Path) -> Scene:
     else:
         raise CaptureError(f"scene key 'lighting.kind' must be environment/directional, "
                            f"got {kind!r}", path)
+    cam_tab = doc.get("camera", {})
+    _warn_unknown(cam_tab, "camera", "camera.", notes)
     views = doc.get("views", {})
+    _warn_unknown(views, "views", "views.", notes)
     noise = None
     if "noise" in doc:
         nt = doc["noise"]
+        _warn_unknown(nt, "noise", "noise.", notes)
         noise = NoiseModel(read=float(nt.get("read", 0.0)), gain=float(nt.get("gain", 0.0)),
                            relative=float(nt.get("relative", 0.0)))
+    _warn_unknown(doc.get("simulation", {}), "simulation", "simulation.", notes)
+    # renderer: SH only by default where it is exact (Lambertian, band-limited SH lighting)
+    exact_sh = (kind == "environment" and brdf.model == "lambertian" and probe is None
+                and not sources)
+    renderer = doc.get("renderer", "sh" if exact_sh else "reference")
+    if renderer not in RENDERERS:
+        raise CaptureError(f"scene key 'renderer' must be one of {', '.join(RENDERERS)}, got "
+                           f"{renderer!r}", path)
+    if renderer == "sh" and kind == "directional":
+        renderer = "reference"  # distant lights are rendered in closed form either way
+        exact_sh = True
+    if renderer == "sh" and sources:
+        raise CaptureError("scene: renderer = 'sh' cannot render [[lighting.lights]] on top of "
+                           "an environment; use renderer = 'reference'", path)
+    rt = doc.get("render", {})
+    _warn_unknown(rt, "render", "render.", notes)
+    render = {"rel_tol": float(rt.get("rel_tol", 1e-3)),
+              "spp": int(rt.get("spp", 1)),   # pixel centres, as the fits sample them
+              "max_samples": int(rt.get("max_samples", 1 << 14)),
+              "seed": int(rt.get("seed", 0)),
+              "probe_interpolation": str(rt.get("probe_interpolation",
+                                                "bilinear" if probe is not None else "cubic")),
+              "sh_probe_height": int(rt.get("sh_probe_height", 0))}
+    if not (render["rel_tol"] > 0 and render["spp"] >= 1 and render["max_samples"] >= 16):
+        raise CaptureError("scene [render]: need rel_tol > 0, spp >= 1, max_samples >= 16",
+                           path)
+    if render["probe_interpolation"] not in ("bilinear", "cubic"):
+        raise CaptureError("scene key 'render.probe_interpolation' must be bilinear or cubic",
+                           path)
+    for msg in notes:
+        warnings.warn(f"{path}: {msg}", UserWarning, stacklevel=2)
     return Scene(
         name=str(doc.get("name", path.stem)), shape=shape, radius=float(geom.get("radius", 1.0)),
         mesh=mesh, albedo=albedo, lighting_kind=kind, light_sh=light_sh, lights=lights,
-        camera=_camera(doc.get("camera", {}), path), n_views=int(views.get("count", 6)),
+        camera=_camera(cam_tab, path), n_views=int(views.get("count", 6)),
         distance=float(views.get("distance", 4.0)),
         elevation_deg=float(views.get("elevation_deg", 30.0)),
         exposure=float(doc.get("exposure", 1.0)), noise=noise,
         seed=int(doc.get("noise", {}).get("seed", 0)),
         saturation=None if "saturation" not in doc else float(doc["saturation"]),
-        source=path, raw=doc, brdf=brdf)
+        source=path, raw=doc, brdf=brdf, renderer=renderer,
+        renderer_exact=renderer == "reference" or exact_sh, render=render, probe=probe,
+        rotation=rot, sources=sources, warnings=notes)
 
 
 def look_at(eye: np.ndarray, target: np.ndarray = np.zeros(3),
@@ -176,15 +325,20 @@ def look_at(eye: np.ndarray, target: np.ndarray = np.zeros(3),
     return np.concatenate([rot, (-rot @ eye)[:, None]], 1)
 
 
-def view_poses(n: int, distance: float, elevation_deg: float) -> list[np.ndarray]:
-    """``n`` cameras on a ring around the origin at alternating elevations ±elevation."""
+def view_poses(n: int, distance: float, elevation_deg: float,
+               target: np.ndarray | None = None) -> list[np.ndarray]:
+    """Place ``n`` cameras on a ring around ``target`` (default the origin), looking at it.
+
+    Alternating elevations ±elevation; the ring's radius is ``distance``.
+    """
+    c = np.zeros(3) if target is None else np.asarray(target, dtype=np.float64)
     poses = []
     for i in range(n):
         az = 2 * math.pi * i / n
         el = math.radians(elevation_deg) * (1 if i % 2 == 0 else -1)
-        eye = distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
-                                   math.sin(el)])
-        poses.append(look_at(eye))
+        eye = c + distance * np.array([math.cos(el) * math.cos(az),
+                                       math.cos(el) * math.sin(az), math.sin(el)])
+        poses.append(look_at(eye, c))
     return poses
 
 
@@ -219,7 +373,7 @@ def write_capture_toml(path: Path, top: dict, tables: dict, images: list[dict]) 
 
 
 def _scene_light(light: dict):
-    """A scene ``[[lighting.lights]]`` entry as a capture light record."""
+    """Convert a scene ``[[lighting.lights]]`` entry to a capture light record."""
     from .types import DirectionalLight, PointLight
 
     if "position" in light:
@@ -230,59 +384,195 @@ def _scene_light(light: dict):
                             radiance=np.asarray(light.get("radiance", [1, 1, 1]), np.float64))
 
 
+def pixel_offsets(spp: int) -> np.ndarray:
+    """``(spp, 2)`` sub-pixel offsets in ``[-½, ½)²`` (a rank-1 lattice; ``(0, 0)`` for 1).
+
+    Stratified in ``u``, golden-ratio spaced in ``v`` (Fibonacci lattice), so any ``spp``
+    covers the pixel evenly.
+    """
+    if spp == 1:
+        return np.zeros((1, 2))
+    k = np.arange(spp) + 0.5
+    return np.stack([k / spp, (k * 0.6180339887498949) % 1.0], -1) - 0.5
+
+
+def _shifted(cam: CameraModel, du: float, dv: float) -> CameraModel:
+    """Return the camera whose pixel-centre rays pass through ``(u + ½ + du, v + ½ + dv)``."""
+    return dataclasses.replace(cam, cx=cam.cx - du, cy=cam.cy - dv)
+
+
+class _Renderer:
+    """Shading of hit points for one scene (the renderer the scene names)."""
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        self.model = scene.brdf.brdf
+        self.probe = None
+        self.info: list[dict] = []
+        if scene.lighting_kind == "environment" and scene.renderer == "reference":
+            interp = scene.render["probe_interpolation"]
+            if scene.probe is not None:
+                img = torch.as_tensor(scene.probe)
+            else:  # SH lighting as a smooth probe: cubic interpolation reproduces it to O(h³)
+                lmax = math.isqrt(scene.light_sh.shape[0]) - 1
+                h = scene.render["sh_probe_height"] or max(32, 8 * (lmax + 1))
+                from brdfcap.fit.envmap import reconstruct_envmap
+
+                img = reconstruct_envmap(torch.as_tensor(scene.light_sh), h, 2 * h)
+                self.sh_probe_shape = (h, 2 * h)
+            rot = None
+            if scene.rotation is not None and scene.probe is not None:
+                rot = torch.as_tensor(scene.rotation)
+            self.probe = LatLongProbe(img, interp, rot)
+
+    def environment(self, nrm: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        sc = self.scene
+        if sc.renderer == "sh":
+            if sc.brdf.model == "lambertian":
+                return lambertian_radiance_sh(nrm, torch.as_tensor(sc.light_sh),
+                                              torch.as_tensor(sc.albedo))
+            refl = 2.0 * (nrm * wo).sum(-1, keepdim=True) * nrm - wo
+            return render_sh(sc.brdf, nrm, refl, torch.as_tensor(sc.light_sh))
+        r = sc.render
+        b, info = render_environment(self.model, nrm, wo, self.probe, rel_tol=r["rel_tol"],
+                                     max_samples=r["max_samples"], seed=r["seed"],
+                                     return_info=True)
+        self.info.append(info)
+        return b
+
+    def light(self, nrm, wo, wi, irr) -> torch.Tensor:
+        return render_lights(self.model, nrm, wo, wi, irr)
+
+
 def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | None,
-                 cast_shadows: bool = False):
-    """Render one view; returns ``(image, n_shadowed_pixels)``. Shadow rays are cast only when
-    ``cast_shadows`` (a non-convex mesh under a known light).
+                 cast_shadows: bool = False, renderer: _Renderer | None = None):
+    """Render one view; returns ``(image, n_shadowed_pixels)``.
+
+    Each pixel averages ``[render] spp`` rays (:func:`pixel_offsets`); a ray that misses the
+    object sees black. Shadow rays are cast only when ``cast_shadows`` (a non-convex mesh under
+    a known light).
     """
     from brdfcap.reconstruct.camera import camera_rays
     from brdfcap.reconstruct.geometry import add_lighting, cast_view, light_at
 
-    cam = scene.camera
-    if scene.shape == "sphere":
-        o, d = camera_rays(cam, pose)
-        bq = (o * d).sum(-1)
-        cq = (o * o).sum(-1) - scene.radius**2
-        disc = bq * bq - cq
-        hit = disc > 0
-        t = -bq - np.sqrt(np.clip(disc, 0, None))
-        hit &= t > 0
-        p = o + t[..., None] * d
-        normal = p / scene.radius
-    else:
-        g = cast_view(scene_rc, mesh, cam, pose, grazing_cos=-1.0, edge_px=0)
-        hit, normal = g.hit, g.normal
-        p = g.position
-    n_shadow = 0
-    if scene.lighting_kind == "directional" and scene.shape == "mesh":
-        add_lighting(g, _scene_light(light), scene_rc, mesh, cast_shadows)
-        if g.shadow is not None:
-            n_shadow = int(g.shadow.sum())
-            hit = hit & ~g.shadow
-    nrm = torch.as_tensor(normal[hit], dtype=torch.float64)
-    alb = torch.as_tensor(scene.albedo)
-    spec = scene.brdf
-    if spec is not None and spec.model != "lambertian":  # fit.brdf_models forward models
-        from brdfcap.fit.brdf_models import render_directional, render_sh
-
-        wo_img = -d if scene.shape == "sphere" else g.wo
-        wo = torch.as_tensor(wo_img[hit], dtype=torch.float64)
-        if scene.lighting_kind == "environment":
-            refl = 2.0 * (nrm * wo).sum(-1, keepdim=True) * nrm - wo
-            rad = render_sh(spec, nrm, refl, torch.as_tensor(scene.light_sh))
+    renderer = renderer or _Renderer(scene)
+    spp = scene.render.get("spp", 1)
+    img = np.zeros((scene.camera.height, scene.camera.width, 3))
+    n_shadow = 0.0
+    for du, dv in pixel_offsets(spp):
+        cam = _shifted(scene.camera, du, dv)
+        if scene.shape == "sphere":
+            o, d = camera_rays(cam, pose)
+            bq = (o * d).sum(-1)
+            cq = (o * o).sum(-1) - scene.radius**2
+            disc = bq * bq - cq
+            hit = disc > 0
+            t = -bq - np.sqrt(np.clip(disc, 0, None))
+            hit &= t > 0
+            p = o + t[..., None] * d
+            normal = p / scene.radius
+            wo_img = -d
         else:
-            wi_np, irr_np, _ = light_at(_scene_light(light), p[hit])
-            rad = render_directional(spec, nrm, wo, torch.as_tensor(wi_np),
-                                     torch.as_tensor(irr_np))
-    elif scene.lighting_kind == "environment":
-        rad = lambertian_radiance_sh(nrm, torch.as_tensor(scene.light_sh), alb)
+            g = cast_view(scene_rc, mesh, cam, pose, grazing_cos=-1.0, edge_px=0)
+            hit, normal, p, wo_img = g.hit, g.normal, g.position, g.wo
+        lit = hit
+        if scene.lighting_kind == "directional" and scene.shape == "mesh":
+            add_lighting(g, _scene_light(light), scene_rc, mesh, cast_shadows)
+            if g.shadow is not None:
+                n_shadow += float(g.shadow.sum()) / spp
+                lit = hit & ~g.shadow
+        nrm = torch.as_tensor(normal[lit], dtype=torch.float64)
+        wo = torch.as_tensor(wo_img[lit], dtype=torch.float64)
+        if scene.lighting_kind == "environment":
+            rad = renderer.environment(nrm, wo)
+            for src in scene.sources:  # bright sources on top of the environment
+                wi_np, irr_np, _ = light_at(_scene_light(src), p[lit])
+                rad = rad + renderer.light(nrm, wo, torch.as_tensor(wi_np),
+                                           torch.as_tensor(irr_np))
+        else:
+            wi_np, irr_np, _ = light_at(_scene_light(light), p[lit])
+            rad = renderer.light(nrm, wo, torch.as_tensor(wi_np), torch.as_tensor(irr_np))
+        img[lit] += rad.numpy() / spp
+    return img, int(round(n_shadow))
+
+
+def _renderer_record(scene: Scene, renderer: _Renderer) -> dict:
+    rec = {"name": scene.renderer, "exact": scene.renderer_exact, "spp": scene.render["spp"]}
+    if scene.renderer == "sh":
+        rec["note"] = ("R&H SH-domain forward model (fit.brdf_models.render_sh); exact for a "
+                       "Lambertian surface under band-limited SH lighting only")
+        return rec
+    rec.update(rel_tol=scene.render["rel_tol"], max_samples=scene.render["max_samples"],
+               seed=scene.render["seed"], lights="closed form (exact)")
+    if renderer.probe is not None:
+        rec["probe"] = {"shape": list(renderer.probe.image.shape[:2]),
+                        "interpolation": renderer.probe.interpolation,
+                        "source": "file" if scene.probe is not None else "SH reconstruction"}
+    terms: dict = {}
+    for info in renderer.info:
+        for name, t in info["terms"].items():
+            agg = terms.setdefault(name, {"method": t.get("method"), "max_rel_err": 0.0,
+                                          "converged": True})
+            agg["max_rel_err"] = max(agg["max_rel_err"], float(t.get("max_rel_err", 0.0)))
+            agg["converged"] = agg["converged"] and bool(t.get("converged", True))
+            for k in ("k", "samples_per_pixel_max"):
+                if k in t:
+                    agg[k] = max(agg.get(k, 0), t[k])
+    if terms:
+        rec["measured"] = terms
+    return rec
+
+
+def _effects(scene: Scene, cast_shadows: bool) -> list[str]:
+    """Every effect the render applied, in words (``ground_truth.json: effects``)."""
+    m = scene.brdf.brdf
+    out = [scene.brdf.model]
+    if scene.renderer == "reference" and scene.brdf.model != "lambertian":
+        if hasattr(m, "fresnel"):
+            out.append(f"fresnel:{m.fresnel}")
+        if hasattr(m, "g1"):
+            out.append("masking:smith")
+        if scene.brdf.model == "phong":
+            out.append("horizon-clamp")
+    if scene.sources:
+        out.append(f"sources:{len(scene.sources)}")
+    if scene.rotation is not None:
+        out.append("probe-rotation")
+    if scene.render.get("spp", 1) > 1:
+        out.append(f"antialiasing:{scene.render['spp']}spp")
+    if cast_shadows:
+        out.append("shadows")
+    if scene.noise is not None:
+        out.append("noise")
+    if scene.saturation is not None:
+        out.append("saturation")
+    return out
+
+
+def _lighting_truth(scene: Scene) -> dict:
+    """Record the true SH projection of the lighting to :data:`HIGH_LMAX` (and the scene's)."""
+    lmax = int(math.isqrt(scene.light_sh.shape[0])) - 1
+    rec = {"lmax": lmax, "sh": "rh2001-real", "frame": "world",
+           "coefficients": scene.light_sh.tolist()}
+    k_hi = (HIGH_LMAX + 1) ** 2
+    if scene.probe is not None:
+        from brdfcap.fit.envmap import project_envmap
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            hi = project_envmap(torch.as_tensor(scene.probe), HIGH_LMAX)
+        if scene.rotation is not None:
+            hi = rotate_sh(hi, torch.as_tensor(scene.rotation))
+        how = "probe projected with Fejer quadrature (fit.envmap.project_envmap)"
     else:
-        wi_np, irr_np, _ = light_at(_scene_light(light), p[hit])
-        rad = lambertian_radiance_directional(nrm, torch.as_tensor(wi_np),
-                                              torch.as_tensor(irr_np), alb)
-    img = np.zeros((cam.height, cam.width, 3))
-    img[hit] = rad.numpy()
-    return img, n_shadow
+        hi = torch.zeros(k_hi, 3, dtype=torch.float64)
+        hi[: scene.light_sh.shape[0]] = torch.as_tensor(scene.light_sh)
+        how = f"band-limited to l = {lmax}: higher bands are exactly zero"
+    rec["high_order"] = {"lmax": HIGH_LMAX, "coefficients": hi.tolist(), "how": how}
+    if scene.sources:
+        rec["sources"] = [{k: (list(v) if isinstance(v, (list, tuple)) else v)
+                           for k, v in src.items()} for src in scene.sources]
+    return rec
 
 
 def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
@@ -297,7 +587,6 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     scene = load_scene(scene_path)
     out = Path(out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
-    effects = [scene.brdf.model if scene.brdf is not None else "lambertian"]
     if scene.shape == "sphere":
         mesh = uv_sphere(scene.radius, n_theta=256, n_phi=512)
         mesh_name = "sphere.ply"
@@ -313,7 +602,11 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         shutil.copyfile(scene.mesh, out / mesh_name)
         rc = _scene(mesh)
     rng = np.random.default_rng(scene.seed)
-    poses = view_poses(scene.n_views, scene.distance, scene.elevation_deg)
+    # cameras aim at the bounding-box centre of the object (the sphere's is the origin)
+    centre = np.zeros(3) if scene.shape == "sphere" else \
+        0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
+    poses = view_poses(scene.n_views, scene.distance, scene.elevation_deg, centre)
+    renderer = _Renderer(scene)
     images = []
     # shadows only where the shape needs them: a convex mesh (or the analytic sphere) cannot
     # shadow itself, so no shadow ray is cast for it
@@ -329,7 +622,7 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     raw_writer = RawCaptureWriter.from_scene(scene.raw, out, scene.source)  # None: EXRs
     for i, pose in enumerate(poses):
         light = scene.lights[i % len(scene.lights)] if scene.lights else None
-        img, ns = _render_view(scene, mesh, rc, pose, light, cast_shadows)
+        img, ns = _render_view(scene, mesh, rc, pose, light, cast_shadows, renderer)
         n_shadowed += ns
         img = img * scene.exposure
         if raw_writer is not None:  # [camera_raw]: raw DNGs through the inverse raw chain
@@ -351,12 +644,7 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
             entry["light"] = {"direction": d / np.linalg.norm(d),
                               "radiance": np.asarray(light.get("radiance", [1, 1, 1]), float)}
         images.append(entry)
-    if cast_shadows:
-        effects.append("shadows")
-    if scene.noise is not None:
-        effects.append("noise")
-    if scene.saturation is not None:
-        effects.append("saturation")
+    effects = _effects(scene, cast_shadows)
     cam = scene.camera
     cam_tab = {"model": cam.model, "width": cam.width, "height": cam.height}
     if cam.model == "pinhole":
@@ -380,6 +668,10 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         tables["material"] = mt
     if scene.light_sh is not None and scene.raw.get("lighting", {}).get("known", False):
         tables["lighting"]["coefficients"] = scene.light_sh.tolist()  # problem 2
+    dirs = [np.asarray(s_["direction"], float) / np.linalg.norm(s_["direction"])
+            for s_ in scene.sources if "direction" in s_]
+    if dirs:  # the decomposition problem needs the source directions (docs/capture-format.md)
+        tables["lighting"]["sources"] = [d.tolist() for d in dirs]
     top = {"format": "brdfcap/1", "name": scene.name}
     if scene.saturation is not None:
         top["saturation"] = scene.saturation
@@ -390,13 +682,16 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     truth = {"scene": str(scene.source), "name": scene.name, "effects": effects,
              "albedo": scene.albedo.tolist(), "lighting_kind": scene.lighting_kind,
              "shadows": {"cast": cast_shadows, "decision": shadow_note,
-                         "shadowed_pixels": n_shadowed}}
+                         "shadowed_pixels": n_shadowed},
+             "renderer": _renderer_record(scene, renderer),
+             "views": {"target": centre.tolist(), "distance": scene.distance}}
+    if scene.warnings:
+        truth["warnings"] = scene.warnings
     if spec is not None:
-        truth["brdf"] = {"model": spec.model, "parameters": spec.parameters()}
+        truth["brdf"] = {"model": spec.model, "parameters": spec.parameters(),
+                         "model_parameters": spec.brdf.to_json()["parameters"]}
     if scene.light_sh is not None:
-        truth["lighting"] = {"lmax": int(math.isqrt(scene.light_sh.shape[0])) - 1,
-                             "sh": "rh2001-real", "frame": "world",
-                             "coefficients": scene.light_sh.tolist()}
+        truth["lighting"] = _lighting_truth(scene)
     if raw_writer is not None:
         truth["camera_raw"] = raw_writer.record()
     tmp = out / "ground_truth.json.tmp"

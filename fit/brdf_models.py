@@ -1,31 +1,28 @@
-"""BRDF models used by the fits: SH-domain filters and the directional-light forward models.
+"""BRDF models as the fits use them: :class:`BRDFSpec`, SH-domain and directional forward models.
 
-Conventions (``docs/fitting.md#brdf-models``): all directions point away from the surface,
+A thin layer over the BRDF-model registry (:mod:`brdfcap.fit.brdf`): every function here takes
+a :class:`BRDFSpec` *or* a registered model instance and asks the model. Conventions
+(``docs/fitting.md#brdf-models``): all directions point away from the surface,
 ``r = 2 (n·ωo) n − ωo`` is the reflected view direction, radiance is linear, lights deliver
 irradiance ``E`` to a surface facing them (the ``light_radiance`` of :class:`Samples`).
 
-Models (all with an optional Lambertian term ``kd/π``):
+Models (all with an optional Lambertian term ``kd/π``; the registry lists them, see
+:func:`brdfcap.fit.brdf.brdf_model_names`):
 
 * ``lambertian``: ``B = kd/π · Σ Â_l L_lm Y_lm(n)`` with the clamped-cosine ``Â_l``
   (R&H 2001 eq. 8).
 * ``phong``: R&H's reparameterised Phong (SIGGRAPH 2001 signal-processing paper, eq. 4 of the
   seed): the transfer function ``ks (s+1)/(2π) max(r·ωi, 0)^s`` is radially symmetric about
   ``r``, so ``B_s = ks Σ_l Â_l(s) Σ_m L_lm Y_lm(r)`` with the exact filter
-  ``Â_l = (s+1) ∫_0^1 t^s P_l(t) dt`` (Funk-Hecke), computed by the recurrence
-  ``Â_0 = 1, Â_1 = (s+1)/(s+2), Â_l = Â_{l-2} (s−l+2)/(s+l+1)``
-  (Gradshteyn & Ryzhik 7.126.2 / Byerly); ``Â_l ≈ exp(−l²/2s)`` for ``s ≫ l`` (seed eq. 5).
-  Under a directional light: ``B_s = ks E (s+1)/(2π) max(r·ωi, 0)^s``.
-* ``microfacet``: in the SH domain, R&H's approximation (seed eq. 6) of the specular lobe as
-  radially symmetric about ``r``: ``Â_l = F0 exp(−(σ l)²)`` (Fresnel at normal exitance).
-  Under a directional light the full Cook-Torrance model with a Beckmann distribution of RMS
-  slope ``σ``, Schlick's Fresnel ``F = F0 + (1−F0)(1−ωi·h)^5`` and Walter et al.'s (EGSR 2007,
-  eq. 27) rational Smith-Beckmann shadowing:
-  ``B_s = E cosθi · F D G / (4 cosθi cosθo)``.
+  :func:`brdfcap.fit.filters.phong_filter`; ``Â_l ≈ exp(−l²/2s)`` for ``s ≫ l`` (seed eq. 5).
+* ``microfacet`` (= ``beckmann``) and ``ggx``: in the SH domain, R&H's approximation (seed
+  eq. 6) of the specular lobe as radially symmetric about ``r``: ``Â_l = F0 exp(−(σ l)²)``
+  (Fresnel at normal exitance). Under a directional light the full Cook–Torrance model
+  (:mod:`brdfcap.fit.brdf.microfacet`): ``B_s = E cosθi · F D G / (4 cosθi cosθo)``.
 * ``mirror``: ``Â_l = 1`` (seed eq. 1): ``B_s = ks L(r)``.
 
-The Phong filter is :func:`brdfcap.fit.filters.phong_filter`; the microfacet SH filter here is
-R&H's Gaussian approximation on purpose (the SH-domain model *is* that approximation), while
-:func:`brdfcap.fit.filters.microfacet_filter` integrates the full lobe by quadrature.
+The SH-domain forward model :func:`render_sh` is what the lighting fits invert; an independent
+check renders with :mod:`brdfcap.capture.reference` instead.
 """
 
 from __future__ import annotations
@@ -35,24 +32,31 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .filters import lambertian_filter, phong_filter
+from .brdf import BRDF_NAMES, BRDFModel, as_brdf_model, get_brdf_model, make_brdf
+from .filters import lambertian_filter, microfacet_filter_approx, phong_filter
 from .render import irradiance_sh
+from .sh import band_of_index, real_sh
 
 __all__ = ["BRDF_MODELS", "BRDFSpec", "specular_filter", "diffuse_filter", "phong_sh_filter",
            "microfacet_sh_filter", "render_sh", "render_directional", "brdf_value",
            "reciprocity_error", "directional_albedo"]
 
-BRDF_MODELS = ("lambertian", "phong", "microfacet", "mirror")
+#: Names of the registered BRDF models (a live view of the registry, aliases included).
+BRDF_MODELS = BRDF_NAMES
+
+_LEGACY = ("lambertian", "phong", "microfacet", "mirror")
+_FIELDS = ("ks", "s", "sigma", "f0")
 
 
 @dataclass
 class BRDFSpec:
-    """A BRDF of one of :data:`BRDF_MODELS`, parameters per colour channel where it matters.
+    """A BRDF of one of the registered models, parameters per colour channel where it matters.
 
     ``kd``: ``(C,)`` Lambertian albedo (0 for a purely specular material); ``ks``: ``(C,)``
     specular scale (Phong, mirror; unused by ``microfacet``, whose scale is ``f0``);
-    ``s``: Phong exponent; ``sigma``: Beckmann RMS slope; ``f0``: ``(C,)`` Fresnel at normal
-    incidence.
+    ``s``: Phong exponent; ``sigma``: Beckmann RMS slope / GGX α; ``f0``: ``(C,)`` Fresnel at
+    normal incidence; ``extra``: any other parameter of the model (``fresnel``, ``eta``, ``k``,
+    or those of a model registered at run time). :attr:`brdf` is the registered model.
     """
 
     model: str = "lambertian"
@@ -61,16 +65,31 @@ class BRDFSpec:
     s: float = 0.0
     sigma: float = 0.0
     f0: torch.Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
+    extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.model not in BRDF_MODELS:
-            raise ValueError(f"unknown BRDF model {self.model!r}; valid: {BRDF_MODELS}")
+            raise ValueError(f"unknown BRDF model {self.model!r}; valid: {tuple(BRDF_MODELS)}")
         self.kd = torch.as_tensor(self.kd, dtype=torch.float64).reshape(-1)
         self.ks = torch.as_tensor(self.ks, dtype=torch.float64).reshape(-1)
         self.f0 = torch.as_tensor(self.f0, dtype=torch.float64).reshape(-1)
 
+    @property
+    def brdf(self) -> BRDFModel:
+        """The registered model instance with these parameters (bounds not enforced)."""
+        cls = get_brdf_model(self.model)
+        kw = {"kd": self.kd}
+        for p in cls.PARAMETERS[1:]:
+            if p.name in self.extra:
+                kw[p.name] = self.extra[p.name]
+            elif p.name in _FIELDS:
+                kw[p.name] = getattr(self, p.name)
+        return make_brdf(self.model, validate=False, **kw)
+
     def parameters(self) -> dict:
-        """JSON-ready parameters."""
+        """JSON-ready parameters (the built-in models keep their historical keys)."""
+        if self.model not in _LEGACY:
+            return self.brdf.parameters()
         d = {"kd": self.kd.tolist()}
         if self.model in ("phong", "mirror"):
             d["ks"] = self.ks.tolist()
@@ -81,23 +100,9 @@ class BRDFSpec:
         return d
 
     @property
-    def brdf(self):
-        """The registered model instance (:mod:`brdfcap.fit.brdf`) with these parameters."""
-        from .brdf import make_brdf
-
-        kw = {"kd": self.kd}
-        if self.model in ("phong", "mirror"):
-            kw["ks"] = self.ks
-        if self.model == "phong":
-            kw["s"] = self.s
-        if self.model in ("microfacet", "beckmann", "ggx"):
-            kw.update(f0=self.f0, sigma=self.sigma)
-        return make_brdf(self.model, **kw)
-
-    @property
     def specular_scale(self) -> torch.Tensor:
         """``(C,)`` scale of the specular filter (``ks``, or ``F0`` for microfacet)."""
-        return self.f0 if self.model == "microfacet" else self.ks
+        return self.brdf.specular_scale
 
 
 def phong_sh_filter(s: float, lmax: int) -> torch.Tensor:
@@ -111,8 +116,7 @@ def phong_sh_filter(s: float, lmax: int) -> torch.Tensor:
 
 def microfacet_sh_filter(sigma: float, lmax: int) -> torch.Tensor:
     """R&H's Gaussian approximation ``exp(−(σ l)²)`` (seed eq. 6), without the F0 scale."""
-    l = torch.arange(lmax + 1, dtype=torch.float64)
-    return torch.exp(-(sigma * l) ** 2)
+    return microfacet_filter_approx(sigma, lmax)
 
 
 def diffuse_filter(lmax: int) -> torch.Tensor:
@@ -120,91 +124,41 @@ def diffuse_filter(lmax: int) -> torch.Tensor:
     return lambertian_filter(lmax) / math.pi
 
 
-def specular_filter(spec: BRDFSpec, lmax: int) -> torch.Tensor:
+def specular_filter(spec, lmax: int) -> torch.Tensor:
     """``(lmax+1,)`` specular filter of ``spec`` *without* its scale (ks or F0)."""
-    if spec.model == "phong":
-        return phong_sh_filter(spec.s, lmax)
-    if spec.model == "microfacet":
-        return microfacet_sh_filter(spec.sigma, lmax)
-    if spec.model == "mirror":
-        return torch.ones(lmax + 1, dtype=torch.float64)
-    return torch.zeros(lmax + 1, dtype=torch.float64)
+    return as_brdf_model(spec).sh_filter(lmax)
 
 
-def render_sh(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor,
+def render_sh(spec, normal: torch.Tensor, reflected: torch.Tensor,
               light_sh: torch.Tensor) -> torch.Tensor:
     """Radiance ``(N, C)`` under SH lighting ``((lmax+1)², C)`` (R&H 2001: ``B_lm = Â_l L_lm``)."""
-    from .sh import band_of_index, real_sh
-
+    m = as_brdf_model(spec)
     k = light_sh.shape[0]
     lmax = int(round(math.sqrt(k))) - 1
-    band = band_of_index(lmax)
     L = light_sh.to(torch.float64)
-    out = irradiance_sh(normal, L) * (spec.kd / math.pi)  # diffuse: (kd/π) Σ Â_l L_lm Y_lm(n)
-    if spec.model != "lambertian":
-        fs = specular_filter(spec, lmax)[band]
+    out = irradiance_sh(normal, L) * (m.kd.to(L.device) / math.pi)  # (kd/π) Σ Â_l L_lm Y_lm(n)
+    if m.has_specular:
+        fs = m.sh_filter(lmax).to(L.device)[band_of_index(lmax).to(L.device)]
         out = out + (real_sh(reflected.to(torch.float64), lmax) @ (fs[:, None] * L)
-                     ) * spec.specular_scale
+                     ) * m.specular_scale.to(L.device)
     return out
 
 
-def _specular_directional(model: str, normal, wo, wi, s, sigma):
-    """Per-unit-scale specular radiance factor under a unit directional light (module doc).
-
-    Returns ``(N,)`` for Phong (multiply by ``ks E``) or a pair ``(a, q)`` for microfacet with
-    ``B_s = E (F0 a + q)`` (Schlick is affine in F0: ``F = F0 (1 − c5) + c5``).
-    """
-    cos_i = (normal * wi).sum(-1)
-    cos_o = (normal * wo).sum(-1)
-    if model == "phong":
-        r = 2.0 * cos_o[..., None] * normal - wo
-        t = (r * wi).sum(-1).clamp_min(0.0)
-        return (s + 1.0) / (2.0 * math.pi) * t ** s * (cos_i > 0)
-    if model == "microfacet":
-        h = torch.nn.functional.normalize(wi + wo, dim=-1)
-        cos_h = (normal * h).sum(-1).clamp(1e-12, 1.0)
-        tan2 = (1.0 - cos_h ** 2) / cos_h ** 2
-        d = torch.exp(-tan2 / sigma ** 2) / (math.pi * sigma ** 2 * cos_h ** 4)
-
-        def g1(c):
-            c = c.clamp(1e-12, 1.0)
-            a = c / (sigma * torch.sqrt((1.0 - c * c).clamp_min(1e-300)))
-            rat = (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
-            return torch.where(a < 1.6, rat, torch.ones_like(a))
-
-        g = g1(cos_i) * g1(cos_o)
-        c5 = (1.0 - (wi * h).sum(-1).clamp(0.0, 1.0)) ** 5
-        lit = (cos_i > 0) & (cos_o > 0)
-        base = torch.where(lit, d * g / (4.0 * cos_o.clamp_min(1e-12)), torch.zeros_like(d))
-        return base * (1.0 - c5), base * c5
-    return torch.zeros_like(cos_i)
-
-
-def render_directional(spec: BRDFSpec, normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor,
+def render_directional(spec, normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor,
                        light_radiance: torch.Tensor) -> torch.Tensor:
-    """Radiance ``(N, C)`` under one distant light per sample (module doc).
+    """Radiance ``(N, C)`` under one distant light per sample: ``E f max(n·ωi, 0)``.
 
     ``light_radiance`` ``(N, C)`` is the irradiance delivered to a surface facing the light.
     A mirror reflects a distant point light into no pixel: its specular term is 0.
     """
     normal, wo, wi = (t.to(torch.float64) for t in (normal, wo, wi))
-    e = light_radiance.to(torch.float64)
-    cos_i = (normal * wi).sum(-1, keepdim=True).clamp_min(0.0)
-    out = e * cos_i * spec.kd / math.pi
-    if spec.model == "phong":
-        out = out + e * spec.ks * _specular_directional("phong", normal, wo, wi, spec.s, 0)[:, None]
-    elif spec.model == "microfacet":
-        a, q = _specular_directional("microfacet", normal, wo, wi, 0, spec.sigma)
-        out = out + e * (spec.f0 * a[:, None] + q[:, None])
-    return out
+    return light_radiance.to(torch.float64) * as_brdf_model(spec).eval_cos(normal, wi, wo)
 
 
-def brdf_value(spec: BRDFSpec, normal, wi, wo) -> torch.Tensor:
-    """BRDF ``f(ωi, ωo)`` ``(N, C)`` implied by :func:`render_directional` (``B = E cosθi f``)."""
-    cos_i = (normal * wi).sum(-1, keepdim=True)
-    e = torch.ones(normal.shape[0], spec.kd.shape[0], dtype=torch.float64)
-    b = render_directional(spec, normal, wo, wi, e)
-    return torch.where(cos_i > 1e-9, b / cos_i.clamp_min(1e-9), torch.zeros_like(b))
+def brdf_value(spec, normal, wi, wo) -> torch.Tensor:
+    """BRDF ``f(ωi, ωo)`` ``(N, C)`` (``B = E cosθi f``; 0 below the horizon)."""
+    return as_brdf_model(spec).eval(normal.to(torch.float64), wi.to(torch.float64),
+                                    wo.to(torch.float64))
 
 
 def _random_pairs(n: int, seed: int = 0):
@@ -219,7 +173,7 @@ def _random_pairs(n: int, seed: int = 0):
     return nrm, hemi(), hemi()
 
 
-def reciprocity_error(spec: BRDFSpec, n: int = 4096) -> float:
+def reciprocity_error(spec, n: int = 4096) -> float:
     """Helmholtz reciprocity check: ``max |f(ωi,ωo) − f(ωo,ωi)| / max f`` on random pairs.
 
     R&H's reparameterised Phong folds ``cosθi`` into the lobe and is *not* reciprocal (the
@@ -230,12 +184,13 @@ def reciprocity_error(spec: BRDFSpec, n: int = 4096) -> float:
     return float((f1 - f2).abs().max() / f1.abs().max().clamp_min(1e-300))
 
 
-def directional_albedo(spec: BRDFSpec, n_theta: int = 24, n_quad: int = 256) -> torch.Tensor:
+def directional_albedo(spec, n_theta: int = 24, n_quad: int = 256) -> torch.Tensor:
     """Energy check: max over outgoing angles of ``∫ f cosθi dωi`` per channel (≤ 1 required).
 
     Quadrature: ``n_quad²`` stratified midpoints in (cosθ, φ) over the hemisphere, exact up to
     the sampling of narrow lobes (for ``s ≳ 10⁴`` or ``σ ≲ 0.02`` it undersamples the lobe).
     """
+    m = as_brdf_model(spec)
     mu = (torch.arange(n_quad, dtype=torch.float64) + 0.5) / n_quad
     ph = (torch.arange(n_quad, dtype=torch.float64) + 0.5) / n_quad * 2 * math.pi
     mu, ph = torch.meshgrid(mu, ph, indexing="ij")
@@ -243,11 +198,9 @@ def directional_albedo(spec: BRDFSpec, n_theta: int = 24, n_quad: int = 256) -> 
     wi = torch.stack([st * torch.cos(ph), st * torch.sin(ph), mu], -1).reshape(-1, 3)
     nrm = torch.zeros_like(wi)
     nrm[:, 2] = 1
-    best = torch.zeros(spec.kd.shape[0], dtype=torch.float64)
+    best = torch.zeros(m.kd.shape[0], dtype=torch.float64)
     for th in torch.linspace(0.0, 1.45, n_theta, dtype=torch.float64):
         wo = torch.tensor([math.sin(th), 0.0, math.cos(th)], dtype=torch.float64).expand_as(wi)
-        e = torch.ones(wi.shape[0], spec.kd.shape[0], dtype=torch.float64)
-        b = render_directional(spec, nrm, wo, wi, e)  # = f cosθi
-        alb = b.mean(0) * 2 * math.pi
+        alb = m.eval_cos(nrm, wi, wo).mean(0) * 2 * math.pi     # = ∫ f cosθi dωi
         best = torch.maximum(best, alb)
     return best

@@ -1,25 +1,25 @@
-"""BRDF filters in the SH domain (Ramamoorthi & Hanrahan 2001).
+r"""BRDF filters in the SH domain (Ramamoorthi & Hanrahan 2001).
 
-Every ``*_filter`` function returns the **multiplier** :math:`\\Lambda_l\\hat\\rho_l` for
+Every ``*_filter`` function returns the **multiplier** :math:`\Lambda_l\hat\rho_l` for
 ``l = 0..lmax`` as a float64 tensor indexed by ``l`` (``Â_l`` in R&H's notation), so that for a
 radially symmetric transfer function the reflected radiance is the zonal convolution
 
-.. math:: B_{lm} = \\Lambda_l\\,\\hat\\rho_l\\,L_{lm},\\qquad \\Lambda_l = \\sqrt{4\\pi/(2l+1)}
+.. math:: B_{lm} = \Lambda_l\,\hat\rho_l\,L_{lm},\qquad \Lambda_l = \sqrt{4\pi/(2l+1)}
 
 (R&H 2001, "A signal-processing framework for inverse rendering" (SIGGRAPH), eq. 11; R&H
 2001, "An efficient representation for irradiance environment maps", eq. 7). For Lambertian
 reflection ``B`` is the irradiance ``E`` and the lighting is expanded about the normal; for
 Phong and the microfacet lobe at normal exitance it is expanded about the reflection direction.
 
-Here :math:`\\hat\\rho` is the *transfer function* — the BRDF times the clamped cosine, R&H's
-"ρ̂" — and :math:`\\hat\\rho_l = 2\\pi\\int_0^\\pi \\hat\\rho(\\theta) Y_{l0}(\\theta)\\sin\\theta
-\\,d\\theta`, hence :math:`\\Lambda_l\\hat\\rho_l = 2\\pi\\int_{-1}^1 \\hat\\rho(u) P_l(u)\\,du`.
+Here :math:`\hat\rho` is the *transfer function* — the BRDF times the clamped cosine, R&H's
+"ρ̂" — and :math:`\hat\rho_l = 2\pi\int_0^\pi \hat\rho(\theta) Y_{l0}(\theta)\sin\theta
+\,d\theta`, hence :math:`\Lambda_l\hat\rho_l = 2\pi\int_{-1}^1 \hat\rho(u) P_l(u)\,du`.
 
-General isotropic BRDFs use the coefficients :math:`\\hat\\rho_{lpq}` of
-:math:`\\hat\\rho(\\omega_i,\\omega_o) =
-\\sum_{lpq}\\hat\\rho_{lpq}\\,\\overline{Y_l^q(\\omega_i)}\\,
-Y_p^q(\\omega_o)` (complex SH, Condon-Shortley; R&H SIGGRAPH 2001 eq. 16), with
-:math:`B_{lmpq} = \\Lambda_l\\hat\\rho_{lpq} L_{lm}` (eq. 17); see :func:`isotropic_brdf_coeffs`.
+General isotropic BRDFs use the coefficients :math:`\hat\rho_{lpq}` of
+:math:`\hat\rho(\omega_i,\omega_o) =
+\sum_{lpq}\hat\rho_{lpq}\,\overline{Y_l^q(\omega_i)}\,
+Y_p^q(\omega_o)` (complex SH, Condon-Shortley; R&H SIGGRAPH 2001 eq. 16), with
+:math:`B_{lmpq} = \Lambda_l\hat\rho_{lpq} L_{lm}` (eq. 17); see :func:`isotropic_brdf_coeffs`.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from scipy.special import roots_legendre
 
-from .sh import num_coeffs
+from .sh import band_of_index, legendre_normalized, num_coeffs, real_sh
 
 __all__ = [
     "lambda_l",
@@ -100,9 +100,10 @@ def lambertian_energy_fraction(lmax: int, lmax_total: int = 4096) -> float:
 
 
 def mirror_filter(lmax: int) -> torch.Tensor:
-    r"""Mirror (delta) transfer function about the reflection direction: :math:`\Lambda_l
-    \hat\rho_l = 1` for every ``l`` — no fall-off, inverse lighting well-conditioned
-    (R&H SIGGRAPH 2001, eq. 19 in the reflection parameterisation; seed eq. 1).
+    r"""Mirror (delta) transfer function about the reflection direction.
+
+    :math:`\Lambda_l \hat\rho_l = 1` for every ``l`` — no fall-off, inverse lighting
+    well-conditioned (R&H SIGGRAPH 2001, eq. 19 in the reflection parameterisation; seed eq. 1).
     """
     return torch.ones(lmax + 1, dtype=torch.float64)
 
@@ -128,8 +129,6 @@ def directional_source(lmax: int, direction: torch.Tensor | None = None) -> torc
     :math:`L_{lm} = \delta_{m0}\,Y_{l0}(0) = \delta_{m0}\Lambda_l^{-1}`; for another unit
     direction ``d`` it is ``y_lm(d)``. Returns ``((lmax+1)**2,)`` float64.
     """
-    from .sh import real_sh
-
     if direction is None:
         out = torch.zeros(num_coeffs(lmax), dtype=torch.float64)
         for l, v in enumerate(1.0 / lambda_l(lmax)):
@@ -142,7 +141,8 @@ def directional_source(lmax: int, direction: torch.Tensor | None = None) -> torc
 # Phong
 # --------------------------------------------------------------------------------------------
 def phong_filter(s: float, lmax: int) -> torch.Tensor:
-    r"""Exact :math:`\Lambda_l\hat\rho_l` of the normalised Phong lobe
+    r"""Exact :math:`\Lambda_l\hat\rho_l` of the normalised Phong lobe.
+
     :math:`\hat\rho = \frac{s+1}{2\pi}\max(\vec R\cdot\vec L, 0)^s` (R&H SIGGRAPH 2001,
     eqs. 18; seed eq. 4).
 
@@ -164,8 +164,9 @@ def phong_filter(s: float, lmax: int) -> torch.Tensor:
 
 
 def phong_filter_approx(s: float, lmax: int) -> torch.Tensor:
-    r"""R&H's Gaussian approximation :math:`\exp(-l^2/2s)` (SIGGRAPH 2001 eq. 19; seed eq. 5),
-    valid for :math:`s \gg 1` and :math:`s \gg l` (measured in ``docs/sh.md``).
+    r"""R&H's Gaussian approximation :math:`\exp(-l^2/2s)` (SIGGRAPH 2001 eq. 19; seed eq. 5).
+
+    Valid for :math:`s \gg 1` and :math:`s \gg l` (measured in ``docs/sh.md``).
     """
     l = torch.arange(lmax + 1, dtype=torch.float64)
     return torch.exp(-(l ** 2) / (2.0 * s))
@@ -175,14 +176,12 @@ def phong_filter_approx(s: float, lmax: int) -> torch.Tensor:
 # Radially symmetric filters by quadrature; microfacet
 # --------------------------------------------------------------------------------------------
 def _legendre_table(u: np.ndarray, lmax: int) -> np.ndarray:
-    """Unnormalised Legendre ``P_l(u)``, ``(len(u), lmax+1)``, by Bonnet's recursion."""
-    p = np.empty((u.size, lmax + 1))
-    p[:, 0] = 1.0
-    if lmax >= 1:
-        p[:, 1] = u
-    for l in range(2, lmax + 1):
-        p[:, l] = ((2 * l - 1) * u * p[:, l - 1] - (l - 1) * p[:, l - 2]) / l
-    return p
+    """Unnormalised Legendre ``P_l(u) = Λ_l P̄_l^0(u)``, ``(len(u), lmax+1)``.
+
+    From :func:`brdfcap.fit.sh.legendre_normalized` (the one Legendre recurrence in brdfcap).
+    """
+    pbar = legendre_normalized(torch.from_numpy(np.asarray(u, dtype=np.float64)), lmax, m=0)
+    return (pbar * lambda_l(lmax)).numpy()
 
 
 def radial_filter_by_quadrature(transfer: Callable[[np.ndarray], np.ndarray], lmax: int,
@@ -276,8 +275,9 @@ def microfacet_filter(sigma: float, lmax: int, distribution: str = "beckmann",
 
 
 def microfacet_filter_approx(sigma: float, lmax: int) -> torch.Tensor:
-    r"""R&H's approximation :math:`\Lambda_l\hat\rho_l \approx \exp(-(\sigma l)^2)` (seed eq. 6),
-    from the small-angle Beckmann lobe :math:`\hat\rho \approx e^{-\theta_i^2/4\sigma^2}/
+    r"""R&H's approximation :math:`\Lambda_l\hat\rho_l \approx \exp(-(\sigma l)^2)` (seed eq. 6).
+
+    From the small-angle Beckmann lobe :math:`\hat\rho \approx e^{-\theta_i^2/4\sigma^2}/
     (4\pi\sigma^2)`, a Gaussian of variance :math:`2\sigma^2` in :math:`\theta_i`.
     """
     l = torch.arange(lmax + 1, dtype=torch.float64)
@@ -321,8 +321,6 @@ def isotropic_brdf_coeffs(transfer: Callable[[np.ndarray, np.ndarray, np.ndarray
     torch.Tensor
         ``(lmax+1, lmax+1, lmax+1)`` float64 indexed ``[l, p, |q|]``.
     """
-    from .sh import legendre_normalized
-
     nt = n_theta or max(64, 2 * lmax + 8)
     nph = n_phi or 4 * lmax + 16
     x, w = roots_legendre(nt)
@@ -367,7 +365,7 @@ def zonal_convolve(coeffs: torch.Tensor, filt: torch.Tensor, dim: int = 0) -> to
         raise ValueError(f"axis {dim} of coeffs has {k} entries, not (lmax+1)**2")
     if filt.shape[0] < lmax + 1:
         raise ValueError(f"filter has {filt.shape[0]} bands, coefficients need {lmax + 1}")
-    from .sh import band_of_index
+
 
     f = filt.to(device=coeffs.device, dtype=coeffs.dtype)[band_of_index(lmax).to(coeffs.device)]
     shape = [1] * coeffs.ndim
@@ -396,21 +394,30 @@ def ill_conditioned_band(filt: torch.Tensor, eps: float, relative: bool = True) 
 
 
 def predicted_lstar_phong(s: float, eps: float) -> float:
-    r"""Analytic :math:`l^*` for Phong: :math:`e^{-l^2/2s} = \epsilon \Rightarrow
-    l^* = \sqrt{2 s \ln(1/\epsilon)}` (from seed eq. 5).
+    r"""Analytic :math:`l^*` for Phong.
+
+    :math:`e^{-l^2/2s} = \epsilon \Rightarrow
+    l^* = \sqrt{2 s \ln(1/\epsilon)}` (from seed eq. 5); 0 for ``ε ≥ 1``.
     """
+    if not eps < 1:
+        return 0.0
     return math.sqrt(2.0 * s * math.log(1.0 / eps))
 
 
 def predicted_lstar_microfacet(sigma: float, eps: float) -> float:
-    r"""Analytic :math:`l^*` for the microfacet lobe: :math:`e^{-(\sigma l)^2} = \epsilon
-    \Rightarrow l^* = \sqrt{\ln(1/\epsilon)}/\sigma` (from seed eq. 6).
+    r"""Analytic :math:`l^*` for the microfacet lobe.
+
+    :math:`e^{-(\sigma l)^2} = \epsilon
+    \Rightarrow l^* = \sqrt{\ln(1/\epsilon)}/\sigma` (from seed eq. 6); 0 for ``ε ≥ 1``.
     """
+    if not eps < 1:
+        return 0.0
     return math.sqrt(math.log(1.0 / eps)) / sigma
 
 
 def predicted_lstar_lambertian(eps: float) -> float:
-    r"""Analytic :math:`l^*` for the clamped cosine from the even-band asymptote
+    r"""Analytic :math:`l^*` for the clamped cosine from the even-band asymptote.
+
     :math:`|\hat A_l| \approx 2\sqrt{2\pi}\,l^{-5/2}` (Stirling on R&H 2001 eq. 8), relative
     to :math:`\hat A_0 = \pi`: :math:`l^* = (2\sqrt{2\pi}/(\pi\epsilon))^{2/5}`.
     """

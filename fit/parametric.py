@@ -1,8 +1,10 @@
-"""Problem 2 (parametric): Lambertian, Phong and microfacet BRDFs under known distant lights.
+"""Problem 2 (parametric): registered BRDF models under known distant lights.
 
-Forward models: :func:`brdfcap.fit.brdf_models.render_directional` (R&H's reparameterised
-Phong ``B = E[kd/π cosθi + ks (s+1)/(2π) max(r·ωi,0)^s]``; Cook-Torrance with Beckmann ``σ``,
-Schlick ``F0`` and Smith-Beckmann shadowing). Every model is *linear* in its scale parameters
+Forward models: the registered models' point evaluation (:mod:`brdfcap.fit.brdf`; e.g. R&H's
+reparameterised Phong ``B = E[kd/π cosθi + ks (s+1)/(2π) max(r·ωi,0)^s]``; Cook-Torrance with
+Beckmann or GGX ``σ``, Schlick ``F0`` and Smith shadowing). Every model that declares a
+``shape_parameter`` and an affine split (:meth:`~brdfcap.fit.brdf.BRDFModel.specular_affine`)
+is fitted — including models registered at run time; each is *linear* in its scale parameters
 (``kd``, ``ks`` — and ``F0``, since Schlick's Fresnel is affine in it) for a fixed lobe shape
 (``s`` or ``σ``), so the fit is done by variable projection (Golub & Pereyra 1973): the scales
 are eliminated by per-channel weighted least squares in closed form and the one shape parameter
@@ -27,14 +29,40 @@ import torch
 
 from brdfcap.core.errors import FitError
 
-from .brdf_models import BRDFSpec, _specular_directional, directional_albedo, reciprocity_error
+from .brdf import BRDFModel, brdf_model_names, get_brdf_model, make_brdf
+from .brdf_models import BRDFSpec, directional_albedo, reciprocity_error
 from .solve import noise_weights
 
-__all__ = ["ParametricFit", "fit_brdf_parametric", "PARAMETRIC_MODELS", "SHAPE_BOUNDS"]
+__all__ = ["ParametricFit", "fit_brdf_parametric", "parametric_models", "PARAMETRIC_MODELS",
+           "SHAPE_BOUNDS"]
 
-PARAMETRIC_MODELS = ("lambertian", "phong", "microfacet")
-#: Search range of the shape parameter (Phong ``s``, Beckmann ``σ``).
-SHAPE_BOUNDS = {"phong": (0.5, 1e5), "microfacet": (0.003, 1.5)}
+
+def parametric_models() -> tuple[str, ...]:
+    """Return the registered models the parametric fit handles.
+
+    Lambertian, and every model with a shape parameter whose transfer is affine in its scale
+    (the registry decides, not a list here).
+    """
+    out = []
+    for name in brdf_model_names():
+        cls = get_brdf_model(name)
+        if cls.name == "lambertian" or (cls.shape_parameter and cls.scale_parameter
+                                        and _affine(cls)):
+            out.append(name)
+    return tuple(out)
+
+
+def _affine(cls) -> bool:
+    probe = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    return cls().specular_affine(probe, probe, probe) is not None
+
+
+#: The built-in parametric models at import time (use :func:`parametric_models` for the live
+#: list).
+PARAMETRIC_MODELS = parametric_models()
+#: Search range of the shape parameter (Phong ``s``, Beckmann ``σ``), from the registry.
+SHAPE_BOUNDS = {n: get_brdf_model(n).shape_bounds for n in PARAMETRIC_MODELS
+                if get_brdf_model(n).shape_bounds}
 
 
 @dataclass
@@ -66,15 +94,13 @@ class ParametricFit:
                 "noise_source": self.noise_source, "checks": self.checks}
 
 
-def _basis(model: str, theta: torch.Tensor, n, wo, wi, e):
+def _basis(model: BRDFModel, theta: torch.Tensor, n, wo, wi, e):
     """Columns ``(N, C, J)`` of the linear scales and the fixed offset ``(N, C)`` at shape θ."""
     cos_i = (n * wi).sum(-1).clamp_min(0.0)
     cols = [e * (cos_i / math.pi)[:, None]]
     off = torch.zeros_like(e)
-    if model == "phong":
-        cols.append(e * _specular_directional("phong", n, wo, wi, theta, 0)[:, None])
-    elif model == "microfacet":
-        a, q = _specular_directional("microfacet", n, wo, wi, 0, theta)
+    if model.shape_parameter is not None:
+        a, q = model.specular_affine(n, wi, wo, theta)
         cols.append(e * a[:, None])
         off = e * q[:, None]
     return torch.stack(cols, -1), off
@@ -110,9 +136,11 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
         ``(N, C)`` observed linear radiance; NaN/inf (e.g. removed saturated pixels) ignored.
     variance : torch.Tensor, optional
         ``(N, C)`` noise variance (``None``: uniform weights, σ² from the residual).
-    model : {"lambertian", "phong", "microfacet"}
+    model : str
+        One of :func:`parametric_models` (``"lambertian"``, ``"phong"``, ``"microfacet"`` /
+        ``"beckmann"``, ``"ggx"``, or a model registered at run time).
     bounds : tuple, optional
-        Search range of ``s`` / ``σ`` (default :data:`SHAPE_BOUNDS`).
+        Search range of the shape parameter (default: the model's ``shape_bounds``).
     checks : bool
         Compute the reciprocity and energy checks.
 
@@ -120,8 +148,11 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
     -------
     ParametricFit
     """
-    if model not in PARAMETRIC_MODELS:
-        raise ValueError(f"unknown parametric model {model!r}; valid: {PARAMETRIC_MODELS}")
+    valid = parametric_models()
+    if model not in valid:
+        raise ValueError(f"unknown parametric model {model!r}; valid: {', '.join(valid)}")
+    proto = make_brdf(model, validate=False, kd=torch.zeros(radiance.shape[-1]))
+    shape_name, scale_name = proto.shape_parameter, proto.scale_parameter
     f64 = torch.float64
     n, o, i = (torch.nn.functional.normalize(t.to(f64), dim=-1) for t in (normal, wo, wi))
     e = light_radiance.to(f64)
@@ -140,37 +171,35 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
         raise FitError(f"only {nuse} lit samples: too few to fit a {model} BRDF")
     nch = b.shape[1]
 
-    if model == "lambertian":
+    if shape_name is None:
         theta = torch.tensor(0.0, dtype=f64)
     else:
-        lo, hi = bounds or SHAPE_BOUNDS[model]
+        lo, hi = bounds or proto.shape_bounds
         grid = torch.linspace(math.log(lo), math.log(hi), 48, dtype=f64)
-        cost = [(_scales(*_basis(model, math.exp(float(t)), n, o, i, e), b, w)[1]) for t in grid]
+        cost = [(_scales(*_basis(proto, math.exp(float(t)), n, o, i, e), b, w)[1]) for t in grid]
         j = int(torch.tensor(cost).argmin())
         a_, b_ = float(grid[max(j - 1, 0)]), float(grid[min(j + 1, len(grid) - 1)])
         from scipy.optimize import minimize_scalar
 
         res = minimize_scalar(
-            lambda t: _scales(*_basis(model, math.exp(t), n, o, i, e), b, w)[1],
+            lambda t: _scales(*_basis(proto, math.exp(t), n, o, i, e), b, w)[1],
             bounds=(a_, b_), method="bounded", options={"xatol": 1e-10})
         theta = torch.tensor(math.exp(res.x), dtype=f64)
-    cols, off = _basis(model, theta, n, o, i, e)
+    cols, off = _basis(proto, theta, n, o, i, e)
     x, rss = _scales(cols, off, b, w)  # x (J, C)
     nlin = cols.shape[-1]
     # Jacobian of the prediction w.r.t. (scales per channel, theta)
     names = [f"kd[{c}]" for c in range(nch)]
-    if model == "phong":
-        names += [f"ks[{c}]" for c in range(nch)] + ["s"]
-    elif model == "microfacet":
-        names += [f"f0[{c}]" for c in range(nch)] + ["sigma"]
+    if shape_name is not None:
+        names += [f"{scale_name}[{c}]" for c in range(nch)] + [shape_name]
     p = len(names)
     jac = torch.zeros(b.shape[0], nch, p, dtype=f64)
     for jcol in range(nlin):
         for c in range(nch):
             jac[:, c, jcol * nch + c] = cols[:, c, jcol]
-    if model != "lambertian":
+    if shape_name is not None:
         def pred_of(t):
-            cc, oo = _basis(model, t, n, o, i, e)
+            cc, oo = _basis(proto, t, n, o, i, e)
             return torch.einsum("ncj,jc->nc", cc, x) + oo
         _, dpred = torch.func.jvp(pred_of, (theta,), (torch.ones_like(theta),))
         jac[:, :, -1] = dpred
@@ -187,17 +216,14 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
         se = torch.where((u[:, ~keep] ** 2).sum(-1) > 0.5, torch.full_like(se, math.inf), se)
     values = {"kd": x[0]}
     stderr = {"kd": se[:nch]}
-    spec_kw = {"kd": x[0]}
-    if model == "phong":
-        values.update(ks=x[1], s=theta)
-        stderr.update(ks=se[nch:2 * nch], s=se[-1])
-        spec = BRDFSpec("phong", kd=x[0], ks=x[1], s=float(theta))
-    elif model == "microfacet":
-        values.update(f0=x[1], sigma=theta)
-        stderr.update(f0=se[nch:2 * nch], sigma=se[-1])
-        spec = BRDFSpec("microfacet", kd=x[0], f0=x[1], sigma=float(theta))
-    else:
-        spec = BRDFSpec("lambertian", **spec_kw)
+    fields = {"kd": x[0]}
+    if shape_name is not None:
+        values.update({scale_name: x[1], shape_name: theta})
+        stderr.update({scale_name: se[nch:2 * nch], shape_name: se[-1]})
+        fields.update({scale_name: x[1], shape_name: float(theta)})
+    known = {"kd", "ks", "s", "sigma", "f0"}
+    spec = BRDFSpec(model, **{k: v for k, v in fields.items() if k in known},
+                    extra={k: v for k, v in fields.items() if k not in known})
     chk = {}
     if checks:
         alb = directional_albedo(spec)

@@ -362,8 +362,10 @@ def brdf_spec_from_results(brdf: dict):
     for k in ("s", "sigma"):
         if isinstance(p.get(k), (int, float)):
             kw[k] = float(p[k])
+    extra = {k: v for k, v in p.items()  # parameters of other registered models (fresnel, ...)
+             if k not in ("kd", "albedo", "ks", "f0", "s", "sigma")}
     try:
-        return BRDFSpec(model=model, **kw)
+        return BRDFSpec(model=model, **kw, extra=extra)
     except (ValueError, TypeError):
         return None
 

@@ -16,7 +16,7 @@ from brdfcap.batch import find_captures as _find
 from brdfcap.batch import read_cluster_config, run_batch
 from brdfcap.capture.config import load_config
 from brdfcap.core.errors import BrdfcapError
-from brdfcap.fit.brdf_models import BRDF_MODELS
+from brdfcap.fit.brdf import BRDF_NAMES
 from brdfcap.fit.problems import PROBLEMS
 from brdfcap.pipeline import RunOptions
 
@@ -53,7 +53,7 @@ def _batch_echo(line: str) -> None:
               help="What to recover (docs/fitting.md): "
                    + "; ".join(f"{n}: {PROBLEMS[n].description}" for n in PROBLEM_CHOICES)
                    + ".")
-@click.option("--brdf", type=click.Choice(list(BRDF_MODELS)),
+@click.option("--brdf", type=click.Choice(BRDF_NAMES),  # the BRDF-model registry
               default=None, help="BRDF model (default: capture.toml [material].model).")
 @click.option("--rule", type=click.Choice(["gcv", "discrepancy", "none"]), default="gcv",
               show_default=True, help="How the Tikhonov weight is chosen (docs/fitting.md).")

@@ -98,18 +98,35 @@ class BRDFModel:
     delta: ClassVar[bool] = False
     #: Name of the parameter that scales the specular SH filter (``ks``, ``f0``), or ``None``.
     scale_parameter: ClassVar[str | None] = None
+    #: Name of the one lobe-shape parameter (``s``, ``sigma``) the parametric fit searches.
+    shape_parameter: ClassVar[str | None] = None
+    #: Search range of the shape parameter in the parametric fit (log-spaced grid + Brent).
+    shape_bounds: ClassVar[tuple[float, float] | None] = None
     #: Short description for the CLI help and the docs.
     summary: ClassVar[str] = ""
 
-    def __init__(self, **params):
+    def __init__(self, *, validate: bool = True, **params):
+        """Set the parameters (defaults for missing ones).
+
+        ``validate=False`` skips the bounds (fitted estimates may leave the physical range and
+        must still evaluate); unknown names are always an error.
+        """
         known = {p.name: p for p in self.PARAMETERS}
         unknown = set(params) - set(known)
         if unknown:
             raise ValueError(f"{self.name}: unknown parameter(s) {', '.join(sorted(unknown))}; "
                              f"valid: {', '.join(known)}")
         for p in self.PARAMETERS:
-            setattr(self, p.name, p.check(params.get(p.name, p.default), self.name))
-        self._check()
+            v = params.get(p.name, p.default)
+            if validate:
+                v = p.check(v, self.name)
+            elif p.per_channel:
+                v = torch.as_tensor(v, dtype=torch.float64).reshape(-1)
+            elif p.choices is None:
+                v = float(torch.as_tensor(v, dtype=torch.float64).reshape(-1)[0])
+            setattr(self, p.name, v)
+        if validate:
+            self._check()
 
     def _check(self) -> None:
         """Extra cross-parameter validation (subclasses)."""
@@ -197,6 +214,17 @@ class BRDFModel:
         with ``pdf`` the solid-angle density (sr⁻¹) of the directions drawn, or ``None`` when the
         model has no sampler (the renderer then integrates by texel quadrature). Only the
         variance of the reference render depends on it, never its expected value.
+        """
+        return None
+
+    def specular_affine(self, normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor,
+                        shape=None) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Split the specular transfer as ``scale · a + q`` for a lobe shape (parametric fits).
+
+        ``shape``: value of :attr:`shape_parameter` (float or 0-d tensor, differentiable; default
+        the instance's). Returns ``(a, q)``, each ``(N,)``, with
+        ``eval_specular_cos = scale[c] · a + q`` per channel, or ``None`` when the transfer is
+        not affine in one scale (e.g. exact Fresnel).
         """
         return None
 
@@ -289,9 +317,9 @@ def get_brdf_model(name: str) -> type[BRDFModel]:
     return _REGISTRY[key]
 
 
-def make_brdf(name: str, **params) -> BRDFModel:
-    """Instance of model ``name`` with ``params`` (missing ones take their defaults)."""
-    return get_brdf_model(name)(**params)
+def make_brdf(name: str, *, validate: bool = True, **params) -> BRDFModel:
+    """Return an instance of model ``name`` with ``params`` (missing ones take defaults)."""
+    return get_brdf_model(name)(validate=validate, **params)
 
 
 def brdf_from_json(doc: dict) -> BRDFModel:

@@ -45,6 +45,8 @@ class Microfacet(BRDFModel):
     """Shared Cook–Torrance machinery; subclasses give ``D``, ``G1`` and the ``h`` sampler."""
 
     scale_parameter = "f0"
+    shape_parameter = "sigma"
+    shape_bounds = (0.003, 1.5)
     PARAMETERS = (
         KD,
         Parameter("f0", 0.04, (0.0, 1.0), "reflectance", True,
@@ -57,11 +59,11 @@ class Microfacet(BRDFModel):
     )
 
     # -- distribution --------------------------------------------------------------------
-    def ndf(self, cos_h: torch.Tensor) -> torch.Tensor:
-        """``D(h)`` (sr⁻¹ of microfacet normals, ``∫ D cosθh dω = 1``)."""
+    def ndf(self, cos_h: torch.Tensor, sigma=None) -> torch.Tensor:
+        """``D(h)`` (sr⁻¹ of microfacet normals, ``∫ D cosθh dω = 1``); ``sigma`` default own."""
         raise NotImplementedError
 
-    def g1(self, cos: torch.Tensor) -> torch.Tensor:
+    def g1(self, cos: torch.Tensor, sigma=None) -> torch.Tensor:
         """Smith ``G1`` for a direction at ``cosθ`` from the normal."""
         raise NotImplementedError
 
@@ -88,21 +90,31 @@ class Microfacet(BRDFModel):
         return fresnel_normal_incidence(self.eta, k)
 
     # -- point evaluation ----------------------------------------------------------------
-    def lobe_cos(self, normal, wi, wo):
+    def lobe_cos(self, normal, wi, wo, sigma=None):
         """``D G / (4 cosθo)`` where lit (the transfer function without ``F``), ``(N,)``."""
         cos_i = (normal * wi).sum(-1)
         cos_o = (normal * wo).sum(-1)
         h = torch.nn.functional.normalize(wi + wo, dim=-1)
         cos_h = (normal * h).sum(-1).clamp(1e-12, 1.0)
-        g = self.g1(cos_i) * self.g1(cos_o)
+        g = self.g1(cos_i, sigma) * self.g1(cos_o, sigma)
         lit = (cos_i > 0) & (cos_o > 0)
-        base = self.ndf(cos_h) * g / (4.0 * cos_o.clamp_min(1e-12))
+        base = self.ndf(cos_h, sigma) * g / (4.0 * cos_o.clamp_min(1e-12))
         return torch.where(lit, base, torch.zeros_like(base)), h
 
     def eval_specular_cos(self, normal, wi, wo):
         """``F D G / (4 cosθo)`` (module doc), ``(N, C)``."""
         base, h = self.lobe_cos(normal, wi, wo)
         return base[..., None] * self.fresnel_term((wi * h).sum(-1))
+
+    def specular_affine(self, normal, wi, wo, shape=None):
+        """Schlick is affine in ``f0``: ``F = f0 (1 − c5) + c5``; ``"none"``: ``F = f0``."""
+        if self.fresnel not in ("schlick", "none"):
+            return None
+        base, h = self.lobe_cos(normal, wi, wo, shape)
+        if self.fresnel == "none":
+            return base, torch.zeros_like(base)
+        c5 = (1.0 - (wi * h).sum(-1).clamp(0.0, 1.0)) ** 5
+        return base * (1.0 - c5), base * c5
 
     def sample_specular(self, normal, wo, u):
         """Sample ``h`` from ``D cosθh`` and reflect ``ωo`` about it.
@@ -151,17 +163,18 @@ class Beckmann(Microfacet):
     aliases = ("microfacet",)
     summary = "Lambertian + Cook-Torrance, Beckmann D, Smith G, Schlick/exact Fresnel (f0, sigma)"
 
-    def ndf(self, cos_h):
+    def ndf(self, cos_h, sigma=None):
         """Beckmann ``D`` (Walter et al. 2007 eq. 25)."""
+        sigma = self.sigma if sigma is None else sigma
         c = cos_h.clamp(1e-12, 1.0)
         tan2 = (1.0 - c ** 2) / c ** 2
-        s2 = self.sigma ** 2
-        return torch.exp(-tan2 / s2) / (math.pi * s2 * c ** 4)
+        return torch.exp(-tan2 / sigma ** 2) / (math.pi * sigma ** 2 * c ** 4)
 
-    def g1(self, cos):
+    def g1(self, cos, sigma=None):
         """Walter et al. 2007 eq. 27 (rational approximation of the Smith–Beckmann ``G1``)."""
+        sigma = self.sigma if sigma is None else sigma
         c = cos.clamp(1e-12, 1.0)
-        a = c / (self.sigma * torch.sqrt((1.0 - c * c).clamp_min(1e-300)))
+        a = c / (sigma * torch.sqrt((1.0 - c * c).clamp_min(1e-300)))
         rat = (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
         return torch.where(a < 1.6, rat, torch.ones_like(a))
 
@@ -188,18 +201,20 @@ class GGX(Microfacet):
     name = "ggx"
     summary = "Lambertian + Cook-Torrance, GGX D, exact Smith G (f0, sigma = alpha)"
 
-    def ndf(self, cos_h):
+    def ndf(self, cos_h, sigma=None):
         """GGX ``D`` (Walter et al. 2007 eq. 33)."""
+        sigma = self.sigma if sigma is None else sigma
         c = cos_h.clamp(1e-12, 1.0)
         tan2 = (1.0 - c ** 2) / c ** 2
-        a2 = self.sigma ** 2
+        a2 = sigma ** 2
         return a2 / (math.pi * c ** 4 * (a2 + tan2) ** 2)
 
-    def g1(self, cos):
+    def g1(self, cos, sigma=None):
         """Exact Smith ``G1`` for GGX (Walter et al. 2007 eq. 34)."""
+        sigma = self.sigma if sigma is None else sigma
         c = cos.clamp(1e-12, 1.0)
         tan2 = (1.0 - c * c) / (c * c)
-        return 2.0 / (1.0 + torch.sqrt(1.0 + self.sigma ** 2 * tan2))
+        return 2.0 / (1.0 + torch.sqrt(1.0 + sigma ** 2 * tan2))
 
     def sample_tan2(self, u):
         """``tan²θh = α² u/(1 − u)`` (Walter eq. 35)."""

@@ -28,6 +28,8 @@ class Phong(BRDFModel):
     name = "phong"
     summary = "Lambertian + R&H reparameterised Phong (ks, s)"
     scale_parameter = "ks"
+    shape_parameter = "s"
+    shape_bounds = (0.5, 1e5)
     PARAMETERS = (
         KD,
         Parameter("ks", 0.0, (0.0, None), "reflectance", True, "scale of the normalised lobe"),
@@ -38,14 +40,23 @@ class Phong(BRDFModel):
         if not self.s > 0:
             raise ValueError(f"phong: exponent s must be > 0, got {self.s}")
 
-    def eval_specular_cos(self, normal, wi, wo):
-        """``ks (s+1)/(2π) max(r·ωi, 0)^s`` where ``n·ωi > 0`` (module doc)."""
+    @staticmethod
+    def lobe(normal, wi, wo, s):
+        """``(s+1)/(2π) max(r·ωi, 0)^s`` where ``n·ωi > 0``, ``(N,)`` (``s`` may be a tensor)."""
         cos_i = (normal * wi).sum(-1)
         cos_o = (normal * wo).sum(-1)
         r = 2.0 * cos_o[..., None] * normal - wo
         t = (r * wi).sum(-1).clamp_min(0.0)
-        lobe = (self.s + 1.0) / (2.0 * math.pi) * t ** self.s * (cos_i > 0)
-        return lobe[..., None] * self._c("ks", normal)
+        return (s + 1.0) / (2.0 * math.pi) * t ** s * (cos_i > 0)
+
+    def eval_specular_cos(self, normal, wi, wo):
+        """``ks (s+1)/(2π) max(r·ωi, 0)^s`` where ``n·ωi > 0`` (module doc)."""
+        return self.lobe(normal, wi, wo, self.s)[..., None] * self._c("ks", normal)
+
+    def specular_affine(self, normal, wi, wo, shape=None):
+        """``(lobe, 0)``: the transfer is linear in ``ks``."""
+        a = self.lobe(normal, wi, wo, self.s if shape is None else shape)
+        return a, torch.zeros_like(a)
 
     def sample_specular(self, normal, wo, u):
         """Directions about ``r`` with density ``(s+1)/(2π) (r·ωi)^s`` (exactly the lobe)."""

@@ -34,6 +34,11 @@ fov_deg = 40.0
 count = 6
 distance = 4.0
 elevation_deg = 30.0
+[render]
+# reference renderer (issue 13): one ray per pixel (the fits sample pixel centres) and a 0.3 %
+# quadrature tolerance keep the simulation to seconds on 2 cores
+spp = 1
+rel_tol = 3e-3
 """
 ENV = 'kind = "environment"\nsh = "grace-rh2001"\nknown = true'
 DIR = ('kind = "directional"\n[[lighting.lights]]\ndirection = [1.0, 0.3, 0.5]\n'

@@ -36,10 +36,16 @@ TRUTH = dict(kd=(0.7, 0.5, 0.35), ks=(0.3, 0.25, 0.2), shininess=25.0)
 
 @pytest.fixture(scope="module")
 def layout(tmp_path_factory):
-    """Textured-albedo sphere, 0.5 % pixel noise, both normal files written."""
+    """Textured-albedo sphere, 0.5 % pixel noise, both normal files written.
+
+    One ray per pixel centre (``spp=1``, the default), where the ground-truth normals are
+    given: averaging the pixel footprint (``spp=4``) broadens the lobe the fit sees at
+    the centre normal, measured −1.9 % in s at 48 px — a model error, not noise, that these
+    1 % and 5-sigma checks are not about.
+    """
     d = tmp_path_factory.mktemp("dil") / "sphere"
     truth = write_synthetic_diligent(d, size=SIZE, n_lights=LIGHTS, albedo_texture=True,
-                                     noise_rel=0.005, seed=3, **TRUTH)
+                                     noise_rel=0.005, seed=3, spp=1, **TRUTH)
     return d, truth
 
 
@@ -295,25 +301,37 @@ def test_frame_check_warn_mode_runs_with_a_loud_warning(tmp_path):
 
 
 def test_phong_matches_inverse_rendering_models():
-    """Same reflection-space Phong as ``brdfcap.fit.brdf_models`` (issue 6), in both domains."""
+    """The fits' Phong (``phong_radiance`` and R&H's SH filter) against the independent reference
+    renderer (issue 13): under a band-limited environment the SH-domain model equals the
+    numerical integral of the Phong point evaluation wherever the lobe stays above the horizon
+    (to the renderer's tolerance), and departs from it near grazing, where the horizon clamp
+    cuts the lobe and the SH model keeps the light from below (measured for s = 17 under
+    Grace: 5.7e-5 of the brightest pixel where n·r > 0.75, 6.7 % at 0.3 < n·r < 0.5, and up to
+    36 % of a pixel's own value below n·r = 0.3).
+    """
     bm = pytest.importorskip("brdfcap.fit.brdf_models")
     import torch
-    from brdfcap.fit.diligent_fit import phong_radiance
+    from brdfcap.capture.reference import LatLongProbe, render_environment
+    from brdfcap.fit.datasets import GRACE_RH2001
+    from brdfcap.fit.envmap import reconstruct_envmap
 
     rng = np.random.default_rng(1)
-    n = rng.normal(size=(500, 3))
+    n = rng.normal(size=(300, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    n[:, 2] = np.abs(n[:, 2])
-    wi = rng.normal(size=(500, 3))
-    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
-    wo = np.broadcast_to([0.0, 0.0, 1.0], (500, 3)).copy()
-    e = rng.uniform(0.5, 1.5, size=(500, 3))
-    kd, ks, s = np.array([0.6, 0.5, 0.4]), np.array([0.3, 0.2, 0.1]), 17.0
-    ours = phong_radiance(n, wo, wi, e, kd, ks, s)
+    kd, ks, s = np.array([0.0, 0.0, 0.0]), np.array([0.3, 0.2, 0.1]), 17.0
     spec = bm.BRDFSpec(model="phong", kd=torch.tensor(kd), ks=torch.tensor(ks), s=s)
-    t = [torch.tensor(a) for a in (n, wo, wi, e)]
-    np.testing.assert_allclose(ours, bm.render_directional(spec, *t).numpy(), rtol=1e-10,
-                               atol=1e-12)
+    light = torch.tensor(GRACE_RH2001, dtype=torch.float64)
+    nt = torch.tensor(n)
+    wo = torch.nn.functional.normalize(nt + torch.tensor([0.3, -0.2, 0.9],
+                                                         dtype=torch.float64), dim=-1)
+    refl = 2 * (nt * wo).sum(-1, keepdim=True) * nt - wo
+    sh = bm.render_sh(spec, nt, refl, light).numpy()
+    probe = LatLongProbe(reconstruct_envmap(light, 48, 96), "cubic")
+    ref = render_environment(spec, nt, wo, probe, rel_tol=1e-4).numpy()
+    up = (nt * refl).sum(-1).numpy() > 0.75          # lobe (width ~ 1/sqrt(s)) above the horizon
+    scale = np.abs(ref).max()
+    assert np.abs(sh - ref)[up].max() < 2e-3 * scale
+    assert np.abs(sh - ref)[~up].max() > 1e-2 * scale   # the clamp is a real, visible effect
     ls = np.arange(9)
     lam_rho = np.sqrt(4 * math.pi / (2 * ls + 1)) * phong_rho_hat(np.ones(1), s, 8)[:, 0]
     np.testing.assert_allclose(lam_rho, bm.phong_sh_filter(s, 8).numpy(), rtol=1e-10)

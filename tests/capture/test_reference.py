@@ -105,9 +105,9 @@ class _NoSamplerBeckmann(Beckmann):
     (Phong, _NoSamplerPhong, {"kd": [0.0] * 3, "ks": [1.0] * 3, "s": 8.0}),
     (Beckmann, _NoSamplerBeckmann, {"kd": [0.0] * 3, "f0": [0.9, 0.6, 0.3], "sigma": 0.4}),
 ])
-def test_importance_sampling_agrees_with_texel_quadrature(sampled, quad, params):
-    """Sampler changes the variance only: RQMC importance sampling of the lobe equals brute-force
-    quadrature of the point evaluation over every texel, within the stated tolerances.
+def test_lobe_quadrature_agrees_with_texel_quadrature(sampled, quad, params):
+    """The sampler changes the speed only: quadrature in the sampler's coordinates equals
+    brute-force quadrature of the point evaluation over every texel, within the tolerances.
     """
     probe = LatLongProbe(_smooth_probe())
     n = _dirs(40, seed=5)
@@ -116,7 +116,7 @@ def test_importance_sampling_agrees_with_texel_quadrature(sampled, quad, params)
     tol = 2e-3
     a, ia = render_environment(sampled(**params), n, wo, probe, rel_tol=tol, return_info=True)
     b, ib = render_environment(quad(**params), n, wo, probe, rel_tol=tol, return_info=True)
-    assert ia["terms"]["specular"]["method"] == "rqmc-importance"
+    assert ia["terms"]["specular"]["method"] == "lobe-quadrature"
     assert ib["terms"]["specular"]["method"] == "texel-quadrature"
     assert ia["converged"] and ib["converged"]
     scale = torch.maximum(b.abs(), 0.01 * b.abs().median())

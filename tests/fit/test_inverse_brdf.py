@@ -84,17 +84,28 @@ def test_reciprocity_and_energy_checks_can_fail():
 
 
 def test_sh_filter_round_trip_phong():
-    """Known SH lighting (lmax 8), Phong s = 20 + diffuse: Â_l and kd to 1e-6 (noise-free)."""
+    """Known SH lighting (lmax 8), Phong s = 20 + diffuse, rendered by the reference renderer
+    (numerical integration of the Phong point evaluation with its horizon clamp, issue 13):
+    Â_l to 2e-3 and kd to 1e-3. Measured 3.1e-4 and 2.5e-4: the renderer's 3e-3 tolerance, the
+    48×96 cubic probe and the clamp (which R&H's SH model ignores) limit it; before issue 13
+    the data came from the SH model itself and agreed to 1e-6 by construction.
+    """
+    from brdfcap.capture.reference import LatLongProbe, render_environment
+    from brdfcap.fit.envmap import reconstruct_envmap
+
     g = torch.Generator().manual_seed(2)
     spec = BRDFSpec("phong", kd=[0.4, 0.3, 0.2], ks=[0.5, 0.5, 0.5], s=20.0)
     light = random_lighting(8, g, dc=1.0, amp=0.3)
-    n, r = unit(4000, g), unit(4000, g)
-    b = render_sh(spec, n, r, light)
+    n = unit(1500, g)
+    wo = torch.nn.functional.normalize(n + 0.8 * unit(1500, g), dim=-1)
+    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
+    b = render_environment(spec, n, wo, LatLongProbe(reconstruct_envmap(light, 48, 96), "cubic"),
+                           rel_tol=3e-3)
     fit = fit_brdf_sh(n, r, b, light, 8)
     truth = 0.5 * phong_sh_filter(20.0, 8)
     assert fit.ill_conditioned_from_l is None
-    assert (fit.filter - truth[:, None]).abs().max() < 1e-6
-    assert (fit.kd - spec.kd).abs().max() < 1e-6
+    assert (fit.filter - truth[:, None]).abs().max() < 2e-3
+    assert (fit.kd - spec.kd).abs().max() < 1e-3
 
 
 def test_sh_filter_unexcited_bands_flagged():
