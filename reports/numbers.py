@@ -24,10 +24,12 @@ Examples
 from __future__ import annotations
 
 import math
+import re
+from html.parser import HTMLParser
 from typing import Iterable
 
 __all__ = ["fmt_pm", "fmt_num", "fmt_rgb_pm", "fmt_rgb", "fmt_band", "REPR_PATTERNS",
-           "find_reprs"]
+           "find_reprs", "visible_text"]
 
 #: Significant digits of the standard error (the value is rounded to the same decimal place).
 ERROR_DIGITS = 2
@@ -141,10 +143,40 @@ REPR_PATTERNS = {
 }
 
 
+class _Visible(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.parts: list[str] = []
+        self._skip = 0
+
+    def handle_starttag(self, tag, attrs):
+        if tag in ("script", "style"):
+            self._skip += 1
+        for k, val in attrs:
+            if k in ("alt", "title") and val:
+                self.parts.append(val)
+
+    def handle_endtag(self, tag):
+        if tag in ("script", "style"):
+            self._skip = max(self._skip - 1, 0)
+
+    def handle_data(self, data):
+        if not self._skip:
+            self.parts.append(data)
+
+
+def visible_text(html: str) -> str:
+    """Return the text a reader of ``html`` sees, with ``alt`` and ``title`` texts.
+
+    Scripts, styles and embedded image data are left out.
+    """
+    p = _Visible()
+    p.feed(html)
+    return " ".join(p.parts)
+
+
 def find_reprs(text: str, patterns: Iterable[str] | None = None) -> list[str]:
     """Return ``"kind: …context…"`` for every Python repr found in ``text`` (visible text)."""
-    import re
-
     out = []
     for kind, pat in REPR_PATTERNS.items():
         if patterns is not None and kind not in patterns:

@@ -39,10 +39,13 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
                     "source": "capture.toml [material] (known)"},
            "conditioning": conditioning_json(fit)}
     p = fit.prediction or {}
+    def _band(l):
+        return "none up to lmax" if l is None else f"l = {l}"
+
     summ = [f"Problem 1 (inverse lighting, {spec.model} BRDF known): lighting to l = "
-            f"{opts.lmax}; first ill-conditioned band {fit.ill_conditioned_from_l} measured, "
-            f"{p.get('first_ill_band')} predicted ({p.get('formula', '')}, "
-            f"eps = {fit.noise_level:.3g})."]
+            f"{opts.lmax}; first ill-conditioned band {_band(fit.ill_conditioned_from_l)} "
+            f"measured, {_band(p.get('first_ill_band'))} predicted by Ramamoorthi & Hanrahan "
+            f"(2001) at the noise level ε = {fit.noise_level:.3g}."]
     est = [lighting_estimate(fit)] + material_estimates(spec, params)
     return FitResult("lighting", est, pred, rec, summary=summ, lighting=fit)
 
