@@ -129,11 +129,10 @@ def headline(results: dict) -> dict:
                      "predicted": _prediction_text(pred),
                      "cite": rh_citation((pred or {}).get("model", model))})
     params = brdf.get("parameters") or {}
-    errs = brdf.get("stderr") or {}
-    shown = [k for k, v in params.items() if (_is_num(v) or is_number_list(v))
-             and not k.endswith("_source")][:4]
-    if shown and (errs or brdf.get("fitted") or results.get("fit", {}).get("problem")
-                  not in ("lighting", "auto")):
+    errs = _param_errors(brdf)
+    shown = [k for k in _HEAD_PARAMS if k in params and (_is_num(params[k])
+                                                         or is_number_list(params[k]))]
+    if shown and errs:
         rows.append({"quantity": f"BRDF ({model})",
                      "value": "; ".join(f"{k} {fmt_rgb_pm(params[k], errs.get(k))}"
                                         for k in shown),
@@ -152,12 +151,28 @@ def headline(results: dict) -> dict:
     return {"measured": "; ".join(what) + ".", "rows": rows, "verdict": _verdict(results)}
 
 
+#: BRDF parameters named on the first screen, in this order (when present and fitted).
+_HEAD_PARAMS = ("albedo", "kd", "kd_median", "ks", "s", "shininess", "sigma", "f0")
+
+
+def _param_errors(brdf: dict) -> dict:
+    """Return the std. error per parameter (``stderr[k]`` or ``parameters[k + "_stderr"]``)."""
+    params = brdf.get("parameters") or {}
+    errs = dict(brdf.get("stderr") or {})
+    for k, v in params.items():
+        if k.endswith("_stderr") and k[: -len("_stderr")] in params:
+            errs.setdefault(k[: -len("_stderr")], v)
+    return errs
+
+
 def brdf_parameter_rows(brdf: dict) -> list[tuple[str, str]]:
     """``(name, value ± error)`` per BRDF parameter; arrays summarised, strings as text."""
     params = brdf.get("parameters") or {}
-    errs = brdf.get("stderr") or {}
+    errs = _param_errors(brdf)
     rows = []
     for k, v in params.items():
+        if k.endswith("_stderr") and k[: -len("_stderr")] in params:
+            continue  # shown as the ± of its parameter
         if _is_num(v) or is_number_list(v):
             rows.append((k, fmt_rgb_pm(v, errs.get(k))))
         elif isinstance(v, str):
