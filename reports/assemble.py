@@ -27,17 +27,26 @@ __all__ = ["report_figures", "summary_lines", "residual_images"]
 
 
 def residual_images(capture: Capture, samples, prediction):
-    """Per view: observed radiance, re-rendered radiance, fitted-pixel mask and title."""
+    """Per view: observed radiance, re-rendered radiance, fitted-pixel mask and title.
+
+    The samples are grouped by view once (one stable sort), not filtered per view: a 96-light
+    capture with 1.5 M samples would otherwise scan every sample 96 times.
+    """
     obs, ren, masks, titles = [], [], [], []
     pred_np = prediction.detach().cpu().numpy()
     vidx = samples.view.cpu().numpy()
     pix = samples.pixel.cpu().numpy()
-    for view in capture.views:
-        r = np.zeros_like(view.radiance, dtype=np.float64)
-        sel = vidx == view.index
-        r[pix[sel, 0], pix[sel, 1]] = pred_np[sel]
+    order = np.argsort(vidx, kind="stable")
+    bounds = np.searchsorted(vidx[order], [v.index for v in capture.views] +
+                             [v.index + 1 for v in capture.views])
+    n = len(capture.views)
+    for k, view in enumerate(capture.views):
+        sel = order[bounds[k]: bounds[n + k]]
+        r = np.zeros(view.radiance.shape, dtype=np.float64)
+        rr, cc = pix[sel, 0], pix[sel, 1]
+        r[rr, cc] = pred_np[sel]
         m = np.zeros(view.mask.shape, bool)
-        m[pix[sel, 0], pix[sel, 1]] = True
+        m[rr, cc] = True
         obs.append(view.radiance)
         ren.append(r)
         masks.append(m)

@@ -65,11 +65,10 @@ def object_box(masks: list[np.ndarray], margin: float = 0.08) -> tuple[slice, sl
 def _resize(rgb: np.ndarray, longest: int) -> np.ndarray:
     h, w = rgb.shape[:2]
     s = longest / max(h, w)
-    if abs(s - 1) < 1e-6:
+    if s >= 1 - 1e-6:  # never upscale: the browser scales (pixelated), the PNG stays small
         return rgb
     im = Image.fromarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
-    im = im.resize((max(1, round(w * s)), max(1, round(h * s))),
-                   Image.Resampling.NEAREST if s > 1 else Image.Resampling.BOX)
+    im = im.resize((max(1, round(w * s)), max(1, round(h * s))), Image.Resampling.BOX)
     return np.asarray(im, np.float64) / 255.0
 
 
@@ -167,21 +166,20 @@ def input_and_residual_panels(observed: list[np.ndarray], rendered: list[np.ndar
     drawn = False
     in_tiles, strips, sheet_in, sheet_res = [], [], [], []
     for i in range(n):
-        o, m = _rgb3(observed[i]), masks[i]
-        disp = display_encode(o, white)
-        disp[~m] = 0.6 * disp[~m] + 0.4 * _NOT_USED
+        o, m = _rgb3(observed[i])[rs, cs], masks[i][rs, cs]  # crop first: encode less
+        tile = display_encode(o, white)
+        tile[~m] = 0.6 * tile[~m] + 0.4 * _NOT_USED
         sil = silhouettes[i] if silhouettes is not None and i < len(silhouettes) else None
         if sil is not None and np.any(sil) and not np.all(sil):
-            disp[_outline(sil)] = _OUTLINE
+            tile[_outline(np.asarray(sil, bool))[rs, cs]] = _OUTLINE
             drawn = True
-        tile = disp[rs, cs]
         rtile = diverging_rgb(res[i], lim)
         if i in shown:
             in_tiles.append(png_data_uri(_resize(tile, _TILE)))
-            ren = display_encode(np.where(m[..., None], _rgb3(rendered[i]), 0.0), white)[rs, cs]
+            ren = display_encode(np.where(m[..., None], _rgb3(rendered[i])[rs, cs], 0.0), white)
             gap = np.ones((tile.shape[0], 3, 3))
-            strips.append(png_data_uri(_resize(np.concatenate(
-                [disp[rs, cs], gap, ren, gap, rtile], 1), 3 * _TILE)))
+            strips.append(png_data_uri(_resize(np.concatenate([tile, gap, ren, gap, rtile], 1),
+                                               3 * _TILE)))
         if len(shown) < n:
             sheet_in.append(_resize(tile, _SHEET_TILE))
             sheet_res.append(_resize(rtile, _SHEET_TILE))
