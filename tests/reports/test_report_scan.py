@@ -188,7 +188,10 @@ def test_demo_report_shows_the_headline(tmp_path):
     html = (tmp_path / "demo" / "results" / "report.html").read_text()
     scan(html, "demo")
     text = visible_text(html)
-    assert "ill-conditioned bands from l = 3" in text.replace("\n", " ")
+    first = " ".join(visible_text(html[html.index('id="summary"'):
+                                      html.index('id="inputs"')]).split())
+    assert "from l = 3 (bands l ≤ 2 determined)" in first  # measured
+    assert "from l = 3 (ε =" in first  # R&H 2001's prediction at the measured noise level
     assert "Ramamoorthi & Hanrahan (2001), eq. 8" in text
     cfg = json.loads((tmp_path / "demo" / "results" / "config.json").read_text())
     assert cfg["command"] and cfg["command"][0] == "brdfcap" and cfg["cli"]["lmax"] == 6
