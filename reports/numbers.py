@@ -111,8 +111,9 @@ def fmt_rgb_pm(values, errors=None, names: str = "RGB") -> str:
     e = e + [None] * (len(v) - len(e))
     if len(v) == 1:
         return fmt_pm(v[0], e[0])
-    return ", ".join(f"{names[i] if i < len(names) else i} {fmt_pm(a, b)}"
-                     for i, (a, b) in enumerate(zip(v, e)))
+    if len(v) > len(names):  # not per channel (a per-band list): index: value
+        return ", ".join(f"{i}: {fmt_pm(a, b)}" for i, (a, b) in enumerate(zip(v, e)))
+    return ", ".join(f"{names[i]} {fmt_pm(a, b)}" for i, (a, b) in enumerate(zip(v, e)))
 
 
 def fmt_rgb(values, digits: int = 3) -> str:
@@ -120,7 +121,9 @@ def fmt_rgb(values, digits: int = 3) -> str:
     v = _seq(values)
     if len(v) == 1:
         return fmt_num(v[0], digits)
-    return ", ".join(f"{'RGB'[i] if i < 3 else i} {fmt_num(x, digits)}" for i, x in enumerate(v))
+    if len(v) > 3:
+        return ", ".join(f"{i}: {fmt_num(x, digits)}" for i, x in enumerate(v))
+    return ", ".join(f"{'RGB'[i]} {fmt_num(x, digits)}" for i, x in enumerate(v))
 
 
 def fmt_band(l, none_word: str = "none up to lmax") -> str:

@@ -74,8 +74,11 @@ def _prediction_text(pred: dict | None) -> str:
 
 
 def _measured_text(first) -> str:
-    return ("every band up to lmax determined" if first is None else
-            f"from l = {int(first)} (bands l ≤ {int(first) - 1} determined)")
+    if first is None:
+        return "every band up to lmax determined"
+    if int(first) <= 0:
+        return "from l = 0 (no band determined on its own)"
+    return f"from l = {int(first)} (bands l ≤ {int(first) - 1} determined)"
 
 
 def _verdict(results: dict) -> tuple[str, str]:
