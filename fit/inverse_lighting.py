@@ -215,7 +215,10 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
     except (KeyError, ValueError, ZeroDivisionError):
         prediction = None
     if not scale_fixing:
-        scale_fixing = (f"BRDF known ({spec.model}, {spec.parameters()}): the absolute scale "
+        given = "; ".join(f"{k} " + ", ".join(f"{x:.4g}" for x in (v if isinstance(v, list)
+                                                                   else [v]))
+                          for k, v in spec.parameters().items())
+        scale_fixing = (f"BRDF known ({spec.model}: {given}): the absolute scale "
                         f"of the lighting follows from the BRDF's scale")
     fit = SHFit(lmax=lmax, coefficients=sol.coefficients, stderr=sol.stderr,
                 determined=sol.determined, chi2_reduced=sol.chi2_reduced,

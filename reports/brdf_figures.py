@@ -16,7 +16,7 @@ import torch
 from brdfcap.capture.images import write_image
 from brdfcap.fit.sh import legendre_normalized
 
-from .figures import display_encode, fig_to_data_uri, plt, robust_figure
+from .figures import _log_positive, display_encode, fig_to_data_uri, plt, robust_figure
 
 __all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_brdf_measurement",
            "attach_normal_map_info", "brdf_summary_lines"]
@@ -94,7 +94,7 @@ def brdf_slice_figure(meas):
     ax.set_ylabel("specular B / E (1/sr)")
     ax.set_title(f"specular slice: k_s = {np.round(p.ks, 4).tolist()}, s = {p.s:.4g}",
                  fontsize=8)
-    ax.legend(fontsize=5.5, ncol=1, loc="upper right")
+    ax.legend(fontsize=6, ncol=1, loc="upper left", bbox_to_anchor=(0.0, -0.22))
     ax = axes[1]
     cen, mean, sd = _binned(meas.diffuse_cos, meas.diffuse_y.mean(-1), np.linspace(0, 1, 26))
     if len(cen):
@@ -114,24 +114,29 @@ def brdf_sh_figure(sh):
 
     Ill-conditioned bands are shaded.
     """
-    fig, ax = plt.subplots(figsize=(6.0, 3.4))
+    fig, ax = plt.subplots(figsize=(8.6, 3.4))
     ls = np.arange(sh.lmax + 1)
+    zeros: list = []
     for c in range(sh.rho_hat.shape[1]):
         col = _COLOURS[c % 3]
-        ax.semilogy(ls, np.maximum(np.abs(sh.rho_hat[:, c]), 1e-12), "o", color=col, ms=3,
-                    label=f"|ρ̂_l| measured {'RGB'[c % 3]}")
-        err = np.where(np.isfinite(sh.stderr[:, c]), sh.stderr[:, c], np.nan)
-        ax.semilogy(ls, np.maximum(err, 1e-12), "x:", color=col, alpha=0.6, ms=3,
-                    label=f"std. error {'RGB'[c % 3]}")
-        ax.semilogy(ls, np.maximum(np.abs(sh.analytic[:, c]), 1e-12), "-", color=col, lw=0.8,
-                    alpha=0.8, label=f"Phong fit analytic {'RGB'[c % 3]}")
+        _log_positive(ax, ls, np.abs(sh.rho_hat[:, c]), "o", zeros, color=col, ms=3,
+                      label=f"|ρ̂_l| measured {'RGB'[c % 3]}")
+        _log_positive(ax, ls, sh.stderr[:, c], "x:", zeros, color=col, alpha=0.6, ms=3,
+                      label=f"std. error {'RGB'[c % 3]}")
+        _log_positive(ax, ls, np.abs(sh.analytic[:, c]), "-", zeros, color=col, lw=0.8,
+                      alpha=0.8, label=f"Phong fit analytic {'RGB'[c % 3]}")
+    if zeros:
+        xs = sorted(set(zeros))
+        ax.plot(xs, [0.0] * len(xs), "v", color="k", ms=6, clip_on=False,
+                transform=ax.get_xaxis_transform(), label="exactly zero (not on log axis)")
     if sh.ill_conditioned_from_l is not None:
         ax.axvspan(sh.ill_conditioned_from_l - 0.5, sh.lmax + 0.5, color="grey", alpha=0.2,
                    label=f"ill-conditioned from l = {sh.ill_conditioned_from_l}")
     ax.set_xlabel("band l")
     ax.set_ylabel("|ρ̂_l|")
     ax.set_title("SH-domain BRDF of the specular part (lighting known)", fontsize=9)
-    ax.legend(fontsize=5.5, ncol=3)
+    ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    fig.tight_layout()
     return fig
 
 

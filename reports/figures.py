@@ -17,6 +17,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402,F401
 import numpy as np  # noqa: E402
 
 __all__ = ["fig_to_data_uri", "display_encode", "plain_text", "robust_figure", "failed_figure",
@@ -172,40 +173,60 @@ def residual_figure(observed: list[np.ndarray], rendered: list[np.ndarray],
     return fig
 
 
+def _log_positive(ax, x, y, fmt, zero_marks: list, **kw):
+    """Plot the positive finite part of ``y`` on a log axis; remember exact zeros to mark."""
+    y = np.asarray(y, np.float64)
+    ok = np.isfinite(y) & (y > 0)
+    if ok.any():
+        ax.semilogy(np.asarray(x)[ok], y[ok], fmt, **kw)
+    zero_marks.extend(np.asarray(x)[np.isfinite(y) & (y == 0)].tolist())
+
+
 @robust_figure
 def spectrum_figure(bands: list[dict], energy: np.ndarray, energy_err: np.ndarray,
                     predicted_filter: np.ndarray | None, ill_from: int | None,
-                    predicted_lstar: float | None = None, channel_names=("R", "G", "B")):
-    """Per-band RMS coefficient magnitude with standard errors, ill-conditioned band marked.
+                    predicted_first: int | None = None, channel_names=("R", "G", "B"),
+                    filter_label: str = "filter |Â_l/Â_0| × |L_0|"):
+    """Per-band RMS coefficient magnitude with standard errors, ill-conditioned bands shaded.
 
     ``energy`` and ``energy_err`` are ``(lmax+1, C)``: the RMS over ``m`` of the estimates and of
-    their standard errors. ``predicted_filter`` (``|Â_l/Â_0|``, the seed's filter) is drawn for
-    comparison.
+    their standard errors. ``predicted_filter`` (``|Â_l/Â_0|`` of the BRDF) is drawn for
+    comparison; ``predicted_first`` is the first band Ramamoorthi & Hanrahan (2001) predict to
+    be ill-conditioned. Values that are exactly zero (a Lambertian filter's odd bands) cannot be
+    drawn on a log axis: they are skipped and marked with a triangle on the bottom edge; infinite
+    standard errors (undetermined coefficients) are skipped.
     """
     lmax = energy.shape[0] - 1
     ls = np.arange(lmax + 1)
-    fig, ax = plt.subplots(figsize=(6.0, 3.4))
+    fig, ax = plt.subplots(figsize=(8.6, 3.4))
     colours = ("tab:red", "tab:green", "tab:blue")
+    zeros: list = []
     for c in range(energy.shape[1]):
-        ax.semilogy(ls, np.maximum(energy[:, c], 1e-12), "o-", color=colours[c % 3],
-                    label=f"|L_l| {channel_names[c]}")
-        err = np.where(np.isfinite(energy_err[:, c]), energy_err[:, c], np.nan)
-        ax.semilogy(ls, np.maximum(err, 1e-12), "x:", color=colours[c % 3], alpha=0.6,
-                    label=f"std. error {channel_names[c]}")
+        _log_positive(ax, ls, energy[:, c], "o-", zeros, color=colours[c % 3],
+                      label=f"|L_l| {channel_names[c]}")
+        _log_positive(ax, ls, energy_err[:, c], "x:", zeros, color=colours[c % 3], alpha=0.6,
+                      label=f"std. error {channel_names[c]}")
     if predicted_filter is not None:
-        ax.semilogy(ls, np.maximum(np.abs(predicted_filter), 1e-12) * float(energy[0].mean()),
-                    "k--", lw=1, label="seed filter |Â_l/Â_0| × |L_0|")
-    if ill_from is not None:
+        _log_positive(ax, ls, np.abs(predicted_filter) * float(energy[0].mean()), "k--", zeros,
+                      lw=1, label=filter_label)
+    if zeros:
+        xs = sorted(set(zeros))
+        ax.plot(xs, [0.0] * len(xs), "v", color="k", ms=6, clip_on=False,
+                transform=ax.get_xaxis_transform(), label="exactly zero (not on log axis)")
+    if ill_from is not None and 0 <= ill_from <= lmax:
         ax.axvspan(ill_from - 0.5, lmax + 0.5, color="grey", alpha=0.2,
-                   label=f"ill-conditioned from l = {ill_from}")
-    if predicted_lstar is not None:  # the seed's prediction: bands > l* ill-conditioned
-        ax.axvline(predicted_lstar + 0.5, color="k", lw=1, ls="-.",
-                   label=f"seed prediction: ill-conditioned beyond l = {predicted_lstar:g}")
+                   label=f"measured: ill-conditioned from l = {ill_from}")
+    if predicted_first is not None and 0 < predicted_first <= lmax + 1:
+        ax.axvline(predicted_first - 0.5, color="k", lw=1, ls="-.",
+                   label=f"Ramamoorthi & Hanrahan (2001): from l = {predicted_first}")
     ax.set_xlabel("band l")
     ax.set_ylabel("RMS over m")
     ax.set_xticks(ls)
-    ax.legend(fontsize=6, ncol=2)
+    ax.set_xlim(-0.5, lmax + 0.5)
+    ax.tick_params(labelsize=8)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     ax.set_title("Per-band lighting spectrum", fontsize=9)
+    fig.tight_layout()
     return fig
 
 
@@ -385,7 +406,7 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     ti = np.radians(np.linspace(-89.0, 89.0, 357))
     n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(ti), 3)
     wi = torch.as_tensor(np.stack([-np.sin(ti), np.zeros_like(ti), np.cos(ti)], -1))
-    fig = plt.figure(figsize=(9.0, 3.4))
+    fig = plt.figure(figsize=(10.0, 3.8))
     ax1 = fig.add_subplot(1, 2, 1)
     ax2 = fig.add_subplot(1, 2, 2, projection="polar")
     colours = ("tab:red", "tab:green", "tab:blue")
@@ -402,15 +423,24 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     ax1.set_xlabel("θi (deg, signed; + = toward the mirror direction)", fontsize=8)
     ax1.set_ylabel("f(ωi, ωo)  [1/sr]", fontsize=8)
     ax1.set_title(f"BRDF slices in the plane of incidence ({spec.model}; R, G, B)", fontsize=9)
-    ax1.legend(fontsize=7)
     ax1.tick_params(labelsize=7)
-    ax1.set_ylim(bottom=0)
+    top = max((ln.get_ydata().max() for ln in ax1.get_lines() if len(ln.get_ydata())),
+              default=1.0)
+    ax1.set_ylim(0, 1.08 * float(top) if np.isfinite(top) and top > 0 else 1.0)
+    ax1.set_xlim(-90, 90)
+    ax1.set_xticks([-90, -60, -30, 0, 30, 60, 90])
     ax2.set_theta_zero_location("N")
     ax2.set_thetamin(-90)
     ax2.set_thetamax(90)
+    ax2.set_thetagrids([-90, -60, -30, 0, 30, 60, 90])
+    ax2.set_rlabel_position(-100)
+    ax2.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(3))
     ax2.set_title("lobe f·cosθi (G) vs θi", fontsize=9)
     ax2.tick_params(labelsize=7)
-    ax2.legend(fontsize=7, loc="lower left")
+    handles, labels = ax2.get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=len(labels),
+               bbox_to_anchor=(0.5, -0.02), frameon=False)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     return fig
 
 

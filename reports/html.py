@@ -10,6 +10,17 @@ import jinja2
 
 from brdfcap.core.atomic import write_text_atomic
 
+from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
+from .views import (
+    band_rows,
+    brdf_parameter_rows,
+    check_rows,
+    conditioning_rows,
+    headline,
+    is_number_list,
+    truth_rows,
+)
+
 __all__ = ["ReportInputs", "render_report", "write_report"]
 
 
@@ -18,22 +29,21 @@ class ReportInputs:
     """What the report shows: the results record plus figure data URIs and display tables."""
 
     results: dict
-    figures: dict[str, str]
+    figures: dict  # figure key -> data URI; "panels" -> reports.panels.Panels
     summary: list[str]
     warnings: list[str] = field(default_factory=list)
     extras: dict = field(default_factory=dict)  # optional sections, e.g. {"bench": {...}}
 
 
 def _fmt(v) -> str:
-    if v is None:
-        return "—"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        if math.isinf(v) or math.isnan(v):
-            return "∞" if math.isinf(v) else "—"
-        return f"{v:.4g}"
-    return str(v)
+    """One table cell: numbers to 4 significant digits, flat lists per channel, words else."""
+    if is_number_list(v):
+        return fmt_rgb(v, 4)
+    if isinstance(v, (list, tuple)):
+        return f"{len(v)} entries"
+    if isinstance(v, dict):
+        return f"{len(v)} fields"
+    return fmt_num(v, 4)
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
@@ -88,12 +98,35 @@ def render_report(inp: ReportInputs) -> str:
         for i, (vals, errs) in enumerate(zip(lt["coefficients"], lt["stderr"])):
             l = int(math.isqrt(i))
             rows.append({"index": i, "l": l, "m": i - l * (l + 1),
-                         "cells": list(zip(vals, [None if e is None else e for e in errs]))})
-    keys, per_view = _image_tables(r.get("images", []))
+                         "cells": [fmt_pm(v, math.inf if e is None else e)
+                                   for v, e in zip(vals, errs)]})
+    images = r.get("images", [])
+    keys, per_view = _image_tables(images)
+    common = []
+    if len(images) > 1:  # a value shared by every image is stated once, not in every row
+        for k in list(keys):
+            vals = [img.get(k) for img in images]
+            if all(x == vals[0] for x in vals) and k != "file":
+                common.append((k, _fmt(vals[0])))
+                keys.remove(k)
+    brdf = r.get("brdf") or {}
+    views = {
+        "headline": headline(r),
+        "coef_rows": rows,
+        "light_bands": band_rows((r.get("lighting") or {}).get("bands") or []),
+        "brdf_params": brdf_parameter_rows(brdf),
+        "brdf_checks": check_rows(brdf),
+        "conditioning": conditioning_rows(r),
+        "truth": truth_rows(r["ground_truth"], r) if r.get("ground_truth") else None,
+        "panels": inp.figures.get("panels"),
+        "n_images": len(r.get("images") or []),
+    }
     tpl = _env().get_template("report.html")
     return tpl.render(r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings,
-                      coef_rows=rows, chain_keys=keys, per_view=per_view, fmt=_fmt,
-                      extras=inp.extras)
+                      v=views, chain_keys=keys, chain_common=common, per_view=per_view,
+                      fmt=_fmt, fmt_pm=fmt_pm,
+                      fmt_rgb=fmt_rgb, fmt_rgb_pm=fmt_rgb_pm, fmt_band=fmt_band,
+                      fmt_num=fmt_num, extras=inp.extras)
 
 
 def write_report(path: str | Path, inp: ReportInputs) -> Path:

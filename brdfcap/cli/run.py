@@ -21,6 +21,7 @@ from brdfcap.fit.problems import PROBLEMS
 from brdfcap.pipeline import RunOptions
 
 from .common import CliState, fail
+from .summary import print_run_summary
 
 __all__ = ["run_cmd", "find_captures", "PROBLEM_CHOICES"]
 
@@ -84,12 +85,16 @@ def _batch_echo(line: str) -> None:
               help="Also run the accuracy-vs-time benchmark (brdfcap bench, default grid) and "
                    "embed its table and Pareto plot in the reports and the index.")
 @click.option("--debug", "debug_local", is_flag=True, help="Show tracebacks.")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing on success (errors still go to "
+              "stderr).")
+@click.option("--json", "as_json", is_flag=True, help="Print the run's summary as one JSON "
+              "object (key numbers with errors, ill-conditioned bands, warnings, paths).")
 @click.pass_obj
 def run_cmd(obj: CliState, path: Path, out: Path, lmax: int, device: str, problem: str,
             brdf: str | None, rule: str, brdf_lmax: int, jobs: int, scheduler: str | None,
             cluster: str | None, cluster_config: Path | None, connect_timeout: float,
             allow_outside: bool, force: bool, progress: bool | None, bench: bool,
-            debug_local: bool) -> None:
+            debug_local: bool, quiet: bool = False, as_json: bool = False) -> None:
     """Run the pipeline on a capture directory, or on every capture under PATH (a batch).
 
     A batch writes OUT/<capture path>/ per capture plus OUT/index.html and OUT/batch.json;
@@ -143,8 +148,7 @@ def run_cmd(obj: CliState, path: Path, out: Path, lmax: int, device: str, proble
             if debug and rec.traceback:
                 click.echo(rec.traceback, err=True)
             fail(RuntimeError(rec.error), False)
-        click.echo(("skipped (unchanged; --force to re-run): " if rec.status == "skipped"
-                    else "ok: ") + f"{rec.capture_dir} -> {Path(rec.out_dir) / 'report.html'}")
+        print_run_summary(rec, quiet=quiet, as_json=as_json)
         return
     n = len(outcome.records)
     ignored = outcome.count("ignored")

@@ -27,22 +27,32 @@ __all__ = ["problem_lighting"]
 def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
     """Problem 1: inverse lighting with the BRDF of ``[material]`` (``--brdf`` picks the model)."""
     need_environment(known)
-    spec = brdf_from_material(known.material, opts.brdf) or BRDFSpec(
-        "lambertian", kd=[1.0, 1.0, 1.0])
+    spec = brdf_from_material(known.material, opts.brdf)
+    given = spec is not None
+    if spec is None:  # no [material]: the albedo is not known, only albedo x lighting is
+        spec = BRDFSpec("lambertian", kd=[1.0, 1.0, 1.0])
     fit = fit_lighting(samples.normal, samples.radiance, opts.lmax, spec,
                        reflected=samples.reflected, variance=samples.variance, rule=opts.rule,
-                       noise_model=known.noise, view=samples.view)
+                       noise_model=known.noise, view=samples.view,
+                       scale_fixing="" if given else (
+                           "no [material]: Lambertian with the albedo fixed to 1 per channel, "
+                           "so the coefficients are albedo x lighting"))
     pred = render_sh(spec, samples.normal, samples.reflected, fit.coefficients)
     params = spec.parameters()
     rec = {"lighting": lighting_json(fit),
            "brdf": {"model": spec.model, "parameters": params,
-                    "source": "capture.toml [material] (known)"},
+                    "source": "capture.toml [material] (known)" if given else
+                    "no [material]: albedo fixed to 1"},
            "conditioning": conditioning_json(fit)}
     p = fit.prediction or {}
-    summ = [f"Problem 1 (inverse lighting, {spec.model} BRDF known): lighting to l = "
-            f"{opts.lmax}; first ill-conditioned band {fit.ill_conditioned_from_l} measured, "
-            f"{p.get('first_ill_band')} predicted ({p.get('formula', '')}, "
-            f"eps = {fit.noise_level:.3g})."]
+    def _band(l):
+        return "none up to lmax" if l is None else f"l = {l}"
+
+    how = "known" if given else "assumed: no [material]"
+    summ = [f"Problem 1 (inverse lighting, {spec.model} BRDF {how}): lighting to l = "
+            f"{opts.lmax}; first ill-conditioned band {_band(fit.ill_conditioned_from_l)} "
+            f"measured, {_band(p.get('first_ill_band'))} predicted by Ramamoorthi & Hanrahan "
+            f"(2001) at the noise level ε = {fit.noise_level:.3g}."]
     est = [lighting_estimate(fit)] + material_estimates(spec, params)
     return FitResult("lighting", est, pred, rec, summary=summ, lighting=fit)
 

@@ -154,10 +154,10 @@ def _invoke(*args):
 def test_cli_run_and_demo(tmp_path):
     res = _invoke("demo", "--out", tmp_path / "demo")
     assert res.exit_code == 0, res.output
-    assert "report:" in res.output
+    assert "report.html" in res.output
     assert (tmp_path / "demo" / "results" / "report.html").is_file()
     r = json.loads((tmp_path / "demo" / "results" / "results.json").read_text())
-    assert r["lighting"]["lmax"] == 2
+    assert r["lighting"]["lmax"] == 6  # past l = 2, where Lambertian lighting stops (issue #16)
 
 
 def _copy_capture(src, dst):

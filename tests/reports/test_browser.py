@@ -37,10 +37,13 @@ def _chromium(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
                               capture_output=True, text=True, timeout=timeout)
 
 
-def check_page(path: Path, shot: Path) -> dict:
-    """Load ``path``; return its self-check attributes and console errors; save a screenshot."""
+def check_page(path: Path, shot: Path, width: int = 1400, height: int = 3200) -> dict:
+    """Load ``path`` at ``width`` px; return its self-check attributes (images, errors,
+    horizontal overflow) and console errors; save a ``width`` x ``height`` screenshot.
+    """
     url = path.resolve().as_uri()
-    p = _chromium("--enable-logging=stderr", "--v=0", "--dump-dom", url)
+    p = _chromium("--enable-logging=stderr", "--v=0", f"--window-size={width},900",
+                  "--dump-dom", url)
     assert p.returncode == 0, p.stderr[-2000:]
     m = re.search(r'<div id="brdfcap-selfcheck"([^>]*)>', p.stdout)
     assert m, f"{path}: no self-check element in the rendered DOM"
@@ -48,7 +51,7 @@ def check_page(path: Path, shot: Path) -> dict:
     console = [ln for ln in p.stderr.splitlines() if ":CONSOLE" in ln]
     console_errors = [ln for ln in console if re.search(r"error|uncaught|failed", ln, re.I)]
     shot.parent.mkdir(parents=True, exist_ok=True)
-    s = _chromium("--window-size=1200,3200", f"--screenshot={shot}", url)
+    s = _chromium(f"--window-size={width},{height}", f"--screenshot={shot}", url)
     assert s.returncode == 0 and shot.is_file() and shot.stat().st_size > 10_000, s.stderr[-500:]
     return {"attrs": attrs, "console_errors": console_errors}
 
@@ -89,11 +92,49 @@ def test_reports_and_index_load_cleanly(tmp_path):
     assert rep["attrs"]["data-errors"] == "0", rep["attrs"].get("data-error-messages")
     assert int(rep["attrs"]["data-images-total"]) >= 6
     assert rep["attrs"]["data-images-broken"] == "0"
+    assert rep["attrs"]["data-overflow-px"] == "0"  # nothing wider than the 1400 px window
     assert rep["console_errors"] == []
     idx = check_page(out / "index.html", ARTIFACTS / "index.png")
     assert idx["attrs"]["data-done"] == "1"
     assert idx["attrs"]["data-errors"] == "0", idx["attrs"].get("data-error-messages")
     assert idx["console_errors"] == []
+
+
+def _assert_clean(r: dict, name: str) -> None:
+    a = r["attrs"]
+    assert a["data-done"] == "1", name
+    assert a["data-errors"] == "0", (name, a.get("data-error-messages"))
+    assert a["data-images-broken"] == "0", name
+    assert int(a["data-images-total"]) >= 3, name
+    assert int(a["data-overflow-px"]) == 0, f"{name}: page wider than 1400 px"
+    assert r["console_errors"] == [], name
+
+
+def test_each_report_type_at_1400px(tmp_path):
+    """A lighting fit (simulated, with ground truth), a BRDF fit and a 24-light normal-map
+    capture: no console error, every image loads, nothing wider than a 1400 px window; the
+    first screen of each is saved as tests/artifacts/first-screen-<type>.png.
+    """
+    from brdfcap.capture.diligent import import_diligent, write_synthetic_diligent
+    from brdfcap.capture.simulate import simulate
+
+    from brdfcap.pipeline import RunOptions, run_capture
+    from brdfcap.testing import scene_text
+
+    runs = {"lighting": (_template(tmp_path), RunOptions(lmax=4))}
+    (tmp_path / "dir.toml").write_text(scene_text(width=40, views=3, lighting=(
+        'kind = "directional"\n[[lighting.lights]]\ndirection = [1.0, 0.3, 0.5]\n'
+        '[[lighting.lights]]\ndirection = [-0.4, 0.8, 0.6]')))
+    runs["brdf"] = (simulate(tmp_path / "dir.toml", tmp_path / "dir"),
+                    RunOptions(problem="brdf"))
+    write_synthetic_diligent(tmp_path / "dl", size=32, n_lights=24, noise_rel=0.005)
+    runs["normal-map"] = (import_diligent(tmp_path / "dl", tmp_path / "nm"), RunOptions())
+    for name, (cap, opts) in runs.items():
+        out = tmp_path / f"out-{name}"
+        run_capture(cap, out, opts)
+        r = check_page(out / "report.html", ARTIFACTS / f"first-screen-{name}.png",
+                       height=900)
+        _assert_clean(r, name)
 
 
 def _template(tmp_path: Path) -> Path:

@@ -108,12 +108,16 @@ def test_report_has_every_section_and_no_external_resources(run_out):
              'id="linearisation"', 'id="timings"']
     pos = [html.index(s) for s in order]
     assert pos == sorted(pos)
-    for alt in ("input thumbnails", "observed, re-rendered", "lat-long", "re-lit",
-                "per-band spectrum", "BRDF slices"):
+    for alt in ("input ", "observed, re-rendered and residual", "lat-long", "re-lit",
+                "per-band spectrum"):
         assert re.search(rf'<img src="data:image/png;base64,[^"]+" alt="[^"]*{alt}', html), alt
     assert not re.search(r'(src|href)="(https?:)?//', html)
     assert "<details>" in html  # coefficient table folded below the figures
-    assert "seed" in html and "ill-conditioned" in html.lower()
+    assert "Ramamoorthi &amp; Hanrahan (2001)" in html and "ill-conditioned" in html.lower()
+    # every view shown, cropped: one input tile and one residual strip per view
+    n = len(run_out.results["images"])
+    assert len(re.findall(r'alt="input ', html)) == n
+    assert len(re.findall(r'alt="observed, re-rendered and residual ', html)) == n
 
 
 def test_latlong_matches_sh_evaluation_at_poles():

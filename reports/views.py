@@ -1,0 +1,393 @@
+"""Typed views of a ``results.json`` record for the report and the terminal summary.
+
+Each function turns part of the (JSON-safe) results record into rows of formatted strings, so
+templates never print a Python object: every number goes through :mod:`.numbers` (value ±
+error), missing values become words. Fields added later by other fits (per-band
+``resolution``, an ``adequacy`` verdict, ...) are shown when present and skipped when absent
+(``docs/reports.md``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
+
+__all__ = ["headline", "brdf_parameter_rows", "conditioning_rows", "truth_comparison",
+           "rh_citation", "band_rows", "is_number_list", "truth_rows", "read_truth",
+           "check_rows"]
+
+
+def is_number_list(x) -> bool:
+    """Tell whether ``x`` is a flat list of numbers (or ``None`` for a non-finite one)."""
+    return isinstance(x, (list, tuple)) and len(x) > 0 and all(
+        (isinstance(v, (int, float)) and not isinstance(v, bool)) or v is None for v in x)
+
+
+def _is_num(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+#: Analytic prediction of the first ill-conditioned band, per BRDF model, cited by author, year
+#: and equation (Ramamoorthi & Hanrahan 2001, SIGGRAPH, "A signal-processing framework for
+#: inverse rendering").
+_RH_CITES = {
+    "lambertian": "Ramamoorthi & Hanrahan (2001), eq. 8: the Lambertian filter Â_l vanishes "
+                  "for odd l > 1 and falls as l^−5/2 for even l, so lighting beyond l = 2 is "
+                  "not determined",
+    "phong": "Ramamoorthi & Hanrahan (2001), eq. 19: Λ_l ρ̂_l ≈ exp(−l²/2s), so bands beyond "
+             "l* = √(2 s ln(1/ε)) fall below the noise level ε",
+    "microfacet": "Ramamoorthi & Hanrahan (2001), microfacet approximation Λ_l ρ̂_l ≈ "
+                  "exp(−(σl)²), so l* = √(ln(1/ε))/σ",
+    "mirror": "Ramamoorthi & Hanrahan (2001): a mirror's filter Λ_l ρ̂_l = 1 at every l, so "
+              "no band is lost",
+}
+
+
+def rh_citation(model: str | None) -> str:
+    """Return the cited analytic prediction for ``model`` ("" for a model without one)."""
+    return _RH_CITES.get(model or "", "")
+
+
+def _prediction_text(pred: dict | None) -> str:
+    """``from l = 3 (l* = 2.9, ε = 7.7e-05)`` from a conditioning ``predicted`` record."""
+    if not pred:
+        return "—"
+    first = pred.get("first_ill_band")
+    lstar = pred.get("lstar")
+    eps = pred.get("eps")
+    parts = []
+    if first is None:
+        parts.append("no band lost")
+    else:
+        parts.append(f"from l = {int(first)}")
+    extra = []
+    if _is_num(lstar) and math.isfinite(lstar) and pred.get("model") != "lambertian":
+        extra.append(f"l* = {fmt_num(lstar, 3)}")
+    if _is_num(eps):
+        extra.append(f"ε = {fmt_num(eps, 2)}")
+    return parts[0] + (f" ({', '.join(extra)})" if extra else "")
+
+
+def _measured_text(first) -> str:
+    if first is None:
+        return "every band up to lmax determined"
+    if int(first) <= 0:
+        return "from l = 0 (no band determined on its own)"
+    return f"from l = {int(first)} (bands l ≤ {int(first) - 1} determined)"
+
+
+def _verdict(results: dict) -> tuple[str, str]:
+    """Whether the model explains the data: (class, sentence)."""
+    for src in (results.get("adequacy"), (results.get("lighting") or {}).get("adequacy"),
+                (results.get("conditioning") or {}).get("adequacy")):
+        if isinstance(src, dict) and src.get("verdict"):
+            detail = src.get("message") or src.get("reason") or ""
+            return ("ok" if str(src.get("passed", src.get("ok", True))).lower() != "false"
+                    else "bad", f"{src['verdict']}" + (f": {detail}" if detail else ""))
+    fit = results.get("fit") or {}
+    rel = fit.get("residual_rel")
+    chi2 = (results.get("lighting") or {}).get("chi2_reduced")
+    rel_txt = f"RMS residual {fmt_num(100 * rel, 2)}% of the mean signal" if _is_num(rel) else ""
+    if is_number_list(chi2) and all(_is_num(c) for c in chi2):
+        worst = max(chi2)
+        chi_txt = "reduced χ² per channel " + fmt_rgb(chi2, 3)
+        if worst <= 1.5:
+            return "ok", f"yes, to the noise level ({chi_txt}; {rel_txt})"
+        if worst <= 3:
+            return "warn", f"nearly: a small systematic misfit ({chi_txt}; {rel_txt})"
+        return "bad", (f"no: the residual is {fmt_num(math.sqrt(worst), 2)}× the noise "
+                       f"({chi_txt}; {rel_txt}); see the residual images")
+    return "", (rel_txt + " (no noise model to compare with)") if rel_txt else "—"
+
+
+def headline(results: dict) -> dict:
+    """Build the report's first screen: what was measured, how well, where the data stop, adequacy.
+
+    Returns ``{"measured": str, "rows": [{"quantity", "value", "measured", "predicted",
+    "cite"}], "verdict": (class, str)}``.
+    """
+    fit = results.get("fit") or {}
+    n_img = len(results.get("images") or [])
+    unit = "lights" if (results.get("geometry") or {}).get("source") == "normal_map" or \
+        "masking" in results else "views"
+    what = [f"{fit.get('n_samples', 0)} pixel samples from {n_img} {unit}",
+            f"problem “{fit.get('problem', '?')}”"]
+    rows = []
+    lt = results.get("lighting")
+    cond = results.get("conditioning") or {}
+    brdf = results.get("brdf") or {}
+    model = brdf.get("model")
+    if lt:
+        c0 = (lt.get("coefficients") or [[]])[0]
+        e0 = (lt.get("stderr") or [[]])[0]
+        pred = (cond.get("lighting") or {}).get("predicted") or lt.get("prediction")
+        rows.append({"quantity": f"lighting, SH to l = {lt.get('lmax')}",
+                     "value": "L₀₀ " + fmt_rgb_pm(c0, e0),
+                     "measured": _measured_text(lt.get("ill_conditioned_from_l")),
+                     "predicted": _prediction_text(pred),
+                     "cite": rh_citation((pred or {}).get("model", model))})
+    params = brdf.get("parameters") or {}
+    errs = _param_errors(brdf)
+    shown = [k for k in _HEAD_PARAMS if k in params and (_is_num(params[k])
+                                                         or is_number_list(params[k]))]
+    if shown and errs:
+        rows.append({"quantity": f"BRDF ({model})",
+                     "value": "; ".join(f"{k} {fmt_rgb_pm(params[k], errs.get(k))}"
+                                        for k in shown),
+                     "measured": "", "predicted": "", "cite": ""})
+    bsh = brdf.get("sh") if isinstance(brdf.get("sh"), dict) else None
+    bc = cond.get("brdf") or {}
+    if bsh or bc:
+        first = (bsh or {}).get("ill_conditioned_from_l", bc.get("measured"))
+        pred = bc.get("predicted")
+        rows.append({"quantity": "BRDF, SH-domain filter ρ̂_l",
+                     "value": f"{len((bsh or {}).get('bands') or [])} bands" if bsh else "",
+                     "measured": _measured_text(first),
+                     "predicted": _prediction_text(pred) if pred else "—",
+                     "cite": (pred or {}).get("formula", "").replace(
+                         "R&H 2001", "Ramamoorthi & Hanrahan (2001)") if pred else ""})
+    return {"measured": "; ".join(what) + ".", "rows": rows, "verdict": _verdict(results)}
+
+
+#: BRDF parameters named on the first screen, in this order (when present and fitted).
+_HEAD_PARAMS = ("albedo", "kd", "kd_median", "ks", "s", "shininess", "sigma", "f0")
+
+
+def _param_errors(brdf: dict) -> dict:
+    """Return the std. error per parameter (``stderr[k]`` or ``parameters[k + "_stderr"]``)."""
+    params = brdf.get("parameters") or {}
+    errs = dict(brdf.get("stderr") or {})
+    for k, v in params.items():
+        if k.endswith("_stderr") and k[: -len("_stderr")] in params:
+            errs.setdefault(k[: -len("_stderr")], v)
+    return errs
+
+
+def brdf_parameter_rows(brdf: dict) -> list[tuple[str, str]]:
+    """``(name, value ± error)`` per BRDF parameter; arrays summarised, strings as text."""
+    params = brdf.get("parameters") or {}
+    errs = _param_errors(brdf)
+    rows = []
+    for k, v in params.items():
+        if k.endswith("_stderr") and k[: -len("_stderr")] in params:
+            continue  # shown as the ± of its parameter
+        if _is_num(v) or is_number_list(v):
+            rows.append((k, fmt_rgb_pm(v, errs.get(k))))
+        elif isinstance(v, str):
+            rows.append((k.replace("_", " "), v))
+        elif isinstance(v, dict):
+            for k2, v2 in v.items():
+                if _is_num(v2) or is_number_list(v2):
+                    rows.append((f"{k} {k2}", fmt_rgb_pm(v2, None)))
+                elif isinstance(v2, str):
+                    rows.append((f"{k} {k2}", v2))
+        elif isinstance(v, (list, tuple)):
+            rows.append((k, f"{len(v)} entries (see results.json)"))
+    return rows
+
+
+def check_rows(brdf: dict) -> list[tuple[str, str]]:
+    """Physical checks of a fitted BRDF (reciprocity, energy) as ``(name, value)``."""
+    out = []
+    for k, v in (brdf.get("checks") or {}).items():
+        name = k.replace("_", " ")
+        if _is_num(v) or isinstance(v, bool):
+            out.append((name, fmt_num(v, 3)))
+        elif is_number_list(v):
+            out.append((name, fmt_rgb(v)))
+        elif isinstance(v, str):
+            out.append((name, v))
+    return out
+
+
+def conditioning_rows(results: dict) -> list[dict]:
+    """Measured vs predicted first ill-conditioned band per quantity."""
+    cond = results.get("conditioning") or {}
+    rows = []
+    for q, label in (("lighting", "lighting"), ("brdf", "BRDF")):
+        c = cond.get(q)
+        if not isinstance(c, dict):
+            continue
+        pred = c.get("predicted") or {}
+        rows.append({"quantity": label, "measured": fmt_band(c.get("measured")),
+                     "predicted": fmt_band(pred.get("first_ill_band"), "none (no band lost)")
+                     if pred else "—",
+                     "lstar": fmt_num(pred.get("lstar"), 3) if pred else "—",
+                     "noise": fmt_num(c.get("noise_level"), 2),
+                     "cite": rh_citation(pred.get("model")) or pred.get("formula", "").replace(
+                         "R&H 2001", "Ramamoorthi & Hanrahan (2001)")})
+    return rows
+
+
+def band_rows(bands: list[dict]) -> tuple[list[str], list[list[str]]]:
+    """Per-band statistics as a table: known columns first, then any extra numeric field."""
+    known = [("l", "l"), ("determined_fraction", "determined"),
+             ("resolution", "resolution (model-resolution diagonal)"),
+             ("median_rel_stderr", "median std. error / |L₀₀|"), ("median_snr", "median SNR"),
+             ("singular_min", "σ_min"), ("singular_max", "σ_max"), ("condition", "condition"),
+             ("ill_conditioned", "ill-conditioned")]
+    present = [(k, n) for k, n in known if any(k in b for b in bands)]
+    extra = sorted({k for b in bands for k, v in b.items()
+                    if k not in dict(known) and (_is_num(v) or isinstance(v, bool))})
+    cols = [n for _, n in present] + [k.replace("_", " ") for k in extra]
+    rows = []
+    for b in bands:
+        r = []
+        for k, _ in present:
+            v = b.get(k)
+            if k == "determined_fraction" and _is_num(v):
+                r.append(f"{100 * v:.0f}%")
+            elif k == "l":
+                r.append(str(v))
+            else:
+                r.append(fmt_num(v, 3))
+        r += [fmt_num(b.get(k), 3) for k in extra]
+        rows.append(r)
+    return cols, rows
+
+
+# --------------------------------------------------------------------------------------------
+# ground truth
+# --------------------------------------------------------------------------------------------
+
+def _true_lighting(truth: dict) -> tuple[np.ndarray | None, str]:
+    """Return the true SH lighting ``(K, 3)`` and where it comes from (highest order available)."""
+    for key in ("lighting_sh_true", "lighting_sh"):
+        t = truth.get(key)
+        if isinstance(t, dict) and isinstance(t.get("coefficients"), list):
+            return np.asarray(t["coefficients"], np.float64), \
+                f"SH projection of the rendered lighting to l = {t.get('lmax', '?')}"
+        if isinstance(t, list) and t and isinstance(t[0], list):
+            return np.asarray(t, np.float64), "SH projection of the rendered lighting"
+    lt = truth.get("lighting")
+    if isinstance(lt, dict) and isinstance(lt.get("coefficients"), list):
+        return np.asarray(lt["coefficients"], np.float64), \
+            f"the simulated lighting (band-limited to l = {lt.get('lmax', '?')}; zero above)"
+    return None, ""
+
+
+def truth_comparison(results: dict, truth: dict) -> dict | None:
+    """Recovered vs true per band and coefficient, with z-scores ``(recovered − true)/stderr``.
+
+    Returns the JSON-ready ``results["ground_truth"]`` block or ``None`` when nothing compares.
+    A recovered lighting whose scale was fixed by setting the albedo to 1 is compared with
+    true lighting × true albedo (the product the fit determines).
+    """
+    out: dict = {"source": "ground_truth.json", "lighting": None, "brdf": []}
+    lt = results.get("lighting")
+    true_L, how = _true_lighting(truth)
+    if lt and true_L is not None and true_L.ndim == 2:
+        est = np.asarray(lt["coefficients"], np.float64)
+        err = np.asarray([[math.inf if e is None else e for e in row] for row in lt["stderr"]],
+                         np.float64)
+        src = str(((results.get("brdf") or {}).get("parameters") or {}).get("albedo_source",
+                                                                             ""))
+        alb = np.asarray(truth.get("albedo", [1.0, 1.0, 1.0]), np.float64)
+        scaled = src.startswith("fixed") and not np.allclose(alb, 1.0)
+        k = est.shape[0]
+        t = np.zeros_like(est)
+        kk = min(k, true_L.shape[0])
+        t[:kk] = true_L[:kk, : est.shape[1]] * (alb[: est.shape[1]] if scaled else 1.0)
+        z = np.where(np.isfinite(err) & (err > 0), (est - t) / np.where(err > 0, err, 1),
+                     np.nan)
+        lmax = int(math.isqrt(k)) - 1
+        bands = []
+        for l in range(lmax + 1):
+            sl = slice(l * l, (l + 1) ** 2)
+            zz = z[sl]
+            fin = zz[np.isfinite(zz)]
+            bands.append({"l": l, "rms_true": float(np.sqrt(np.mean(t[sl] ** 2))),
+                          "rms_error": float(np.sqrt(np.mean((est[sl] - t[sl]) ** 2))),
+                          "max_abs_z": float(np.max(np.abs(fin))) if fin.size else None,
+                          "mean_z2": float(np.mean(fin ** 2)) if fin.size else None,
+                          "n_determined": int(fin.size), "n": int(zz.size)})
+        out["lighting"] = {"truth": how + (" × true albedo (the fit determines the product)"
+                                           if scaled else ""),
+                           "true": t.tolist(), "z": [[None if not math.isfinite(v) else float(v)
+                                                      for v in row] for row in z],
+                           "bands": bands}
+    tb = truth.get("brdf") or {}
+    rb = results.get("brdf") or {}
+    tp, rp, re = tb.get("parameters") or {}, rb.get("parameters") or {}, rb.get("stderr") or {}
+    if tb.get("model") == rb.get("model") and re:
+        for k, tv in tp.items():
+            name = "kd" if k == "kd" and "kd" not in rp and "albedo" in rp else k
+            rv = rp.get(name, rp.get("albedo") if k == "kd" else None)
+            ev = re.get(name, re.get("albedo") if k == "kd" else None)
+            if rv is None or ev is None:
+                continue
+            tl, rl, el = (np.atleast_1d(np.asarray(x, np.float64)) for x in (tv, rv, ev))
+            if tl.size == 1 and rl.size > 1:
+                tl = np.repeat(tl, rl.size)
+            if tl.size != rl.size or el.size != rl.size:
+                continue
+            z = np.where(el > 0, (rl - tl) / np.where(el > 0, el, 1), np.nan)
+            out["brdf"].append({"parameter": k, "true": tl.tolist(), "recovered": rl.tolist(),
+                                "stderr": el.tolist(),
+                                "z": [None if not math.isfinite(v) else float(v) for v in z]})
+    if out["lighting"] is None and not out["brdf"]:
+        return None
+    return out
+
+
+def truth_rows(gt: dict, results: dict) -> dict:
+    """Format the tables of a ``results["ground_truth"]`` block (bands, coefficients, BRDF)."""
+    rows = {"bands": [], "coefficients": [], "brdf": [], "truth": "", "headline": ""}
+    lt = gt.get("lighting")
+    rl = results.get("lighting") or {}
+    if lt and rl:
+        for i, (tv, zv, ev, sv) in enumerate(zip(lt["true"], lt["z"], rl["coefficients"],
+                                                 rl["stderr"])):
+            l = math.isqrt(i)
+            rows["coefficients"].append(
+                [str(i), str(l), str(i - l * (l + 1))]
+                + [c for a, e, t, z in zip(ev, sv, tv, zv)
+                   for c in (fmt_pm(a, math.inf if e is None else e), fmt_num(t, 4),
+                             fmt_num(z, 2))])
+    for b in gt.get("brdf") or []:
+        zs = [abs(z) for z in b["z"] if z is not None]
+        if zs and not rows["headline"]:
+            rows["headline"] = "BRDF parameters within " + fmt_num(max(zs), 2) + " std. errors"
+        rows["brdf"].append([b["parameter"],
+                             fmt_rgb_pm(b["recovered"], b["stderr"]), fmt_rgb(b["true"], 4),
+                             fmt_rgb(b["z"], 2)])
+    if lt:
+        rows["truth"] = lt["truth"]
+        ill = rl.get("ill_conditioned_from_l")
+        det = [b for b in lt["bands"] if (ill is None or b["l"] < ill) and b.get("mean_z2")
+               is not None]
+        if det:
+            z2 = sum(b["mean_z2"] * b["n_determined"] for b in det) / sum(
+                b["n_determined"] for b in det)
+            zmax = max(b["max_abs_z"] for b in det)
+            lhi = det[-1]["l"]
+            rows["headline"] = (f"lighting bands l ≤ {lhi}: mean z² = {fmt_num(z2, 2)} "
+                                f"(about 1 when the fit is unbiased and its standard errors "
+                                f"right), max |z| = {fmt_num(zmax, 2)}")
+        for b in lt["bands"]:
+            mz2 = b.get("mean_z2")
+            rows["bands"].append([str(b["l"]), fmt_num(b["rms_true"], 3),
+                                  fmt_num(b["rms_error"], 2),
+                                  f"{b['n_determined']} of {b['n']}",
+                                  fmt_num(b.get("max_abs_z"), 2),
+                                  fmt_num(mz2, 2),
+                                  "—" if mz2 is None else ("consistent" if mz2 < 4 else
+                                                           "biased (regularised or misfit)")])
+    return rows
+
+
+def read_truth(capture_dir: str | Path) -> dict | None:
+    """``ground_truth.json`` of a simulated capture, or ``None`` (absent or unreadable)."""
+    p = Path(capture_dir) / "ground_truth.json"
+    if not p.is_file():
+        return None
+    try:
+        d = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) else None
