@@ -33,6 +33,7 @@ from brdfcap.reports.html import ReportInputs, write_report
 from brdfcap.results_io import RESULTS_FORMAT, results_record, write_coefficients_csv
 
 __all__ = ["RunOptions", "RunContext", "RunOutcome", "run_capture", "fit_capture", "known_of",
+           "reconstruct_capture",
            "RESULTS_FORMAT", "versions"]
 
 
@@ -111,7 +112,8 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
     return solve_problem(options.problem, samples, known_of(capture, options), fit_opts)
 
 
-def _reconstruct(capture: Capture, options: RunOptions) -> tuple[Geometry, Samples, list[str]]:
+def reconstruct_capture(capture: Capture, options: RunOptions
+                        ) -> tuple[Geometry, Samples, list[str]]:
     """Geometry (mesh or normal map, frame-checked) and per-pixel samples; their warnings."""
     geom: Geometry = compute_capture_geometry(capture)
     warnings = list(capture.config.warnings)
@@ -153,7 +155,7 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     with stage("capture"):
         cap = load_capture(capture_dir)
     with stage("reconstruct"):
-        geom, samples, warnings = _reconstruct(cap, opts)
+        geom, samples, warnings = reconstruct_capture(cap, opts)
     with stage("fit"):
         fit = fit_capture(cap, samples, opts)
     with stage("report"):
