@@ -232,7 +232,7 @@ def mitsuba_bsdf_xml(spec: BRDFSpec, bsdf_id: str = "brdfcap_material") -> str:
 
 def gltf_brdf(base_color, metallic: float, roughness: float, normal: torch.Tensor,
               wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-    r"""Evaluate the glTF 2.0 metallic-roughness BRDF ``(N, 3)`` (glTF 2.0 specification, appendix B).
+    r"""Evaluate the glTF 2.0 metallic-roughness BRDF ``(N, 3)`` (glTF 2.0 spec, appendix B).
 
     ``α = roughness²``; GGX ``D = α² χ(n·h) / (π ((n·h)²(α²−1)+1)²)``; separable Smith
     visibility ``V = 1/((|n·l| + √(α² + (1−α²)(n·l)²)) (|n·v| + √(α² + (1−α²)(n·v)²)))``;

@@ -1,5 +1,4 @@
-"""Command-line interface: ``brdfcap run | simulate | demo | bench | import-diligent | envmap-sh``
-and ``export``.
+"""Command-line interface: ``brdfcap run | simulate | demo | bench | export | …``.
 
 One module per command; this package only builds the ``brdfcap`` group from them. User errors
 (:class:`brdfcap.core.errors.BrdfcapError`) print one line naming the file and the problem and
