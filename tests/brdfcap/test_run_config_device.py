@@ -92,3 +92,18 @@ def test_run_config_errors_are_one_line(tmp_path):
         r = CliRunner().invoke(main, ["run", str(tmp_path), "--out", str(tmp_path / "o"),
                                       "--device", "cuda"])
         assert r.exit_code == 1 and "--device cuda:" in r.output and "CUDA" in r.output
+
+
+@pytest.mark.gpu
+def test_pipeline_runs_on_cuda_and_profiles_its_memory(tiny_template, tmp_path):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    from brdfcap.pipeline import RunOptions, run_capture
+
+    cpu = run_capture(tiny_template, tmp_path / "cpu", RunOptions(lmax=2, device="cpu"))
+    gpu = run_capture(tiny_template, tmp_path / "gpu", RunOptions(lmax=2, device="cuda"))
+    assert gpu.results["device"].startswith("cuda")
+    assert gpu.results["timings"]["stages"]["fit"]["cuda_peak_mb"] > 0
+    a = torch.tensor(cpu.results["lighting"]["coefficients"])
+    b = torch.tensor(gpu.results["lighting"]["coefficients"])
+    assert torch.allclose(a, b, rtol=1e-6, atol=1e-9 * float(a.abs().max()))
