@@ -6,7 +6,6 @@ import os
 
 import numpy as np
 import open3d as o3d
-
 from brdfcap.reconstruct.mesh import load_mesh, uv_sphere
 
 
