@@ -207,7 +207,8 @@ def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int, devic
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
                       brdf_lmax=brdf_lmax)
     # every option of this command with its resolved value (defaults included), for config.json
-    cli = {k: (str(v) if isinstance(v, Path) else v)
+    # (paths made absolute, so that the config.json re-runs from any directory)
+    cli = {k: (str(v.resolve()) if isinstance(v, Path) else v)
            for k, v in click.get_current_context().params.items()}
     cli["debug"] = debug
     extras, hash_extra = {}, {}
