@@ -372,10 +372,13 @@ def view_names(capture) -> list[str]:
 
 
 def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, int]],
-               names: list[str] | None = None) -> list[Path]:
+               names: list[str] | None = None, one_camera: bool = False) -> list[Path]:
     """Write per-pixel world-frame normal and albedo EXRs of every view (NaN off the samples).
 
-    Albedo is the fit's per-pixel albedo map where the problem made one (``brdf-map``), else
+    ``one_camera`` (every view is the same camera, many lights: a normal-map capture) writes
+    one ``normal.exr`` from the samples of all views instead of one per view.
+    Albedo is the fit's per-pixel albedo map where the problem made one (``brdf-map``: one
+    ``albedo.exr``), else
     ``kd × measured / predicted`` radiance per pixel (the fitted albedo corrected by each
     pixel's residual; exact for a Lambertian model, the diffuse-dominated estimate otherwise).
     """
@@ -395,6 +398,14 @@ def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, 
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(np.abs(pred) > 1e-12, rad / pred, np.nan) * kd
     written = []
+    if meas is not None:  # one per-pixel map for the whole capture (brdf-map)
+        written.append(write_image(out / "albedo.exr", np.asarray(meas.albedo_map, np.float32)))
+    if one_camera:
+        h, w = image_shapes[0]
+        n_img = np.full((h, w, 3), np.nan, np.float32)
+        n_img[pix[:, 0], pix[:, 1]] = nrm
+        written.append(write_image(out / "normal.exr", n_img,
+                                   attributes={"brdfcap:frame": "world, unit normals"}))
     for v, (h, w) in enumerate(image_shapes):
         sel = view == v
         if not sel.any():
@@ -403,14 +414,13 @@ def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, 
         name = names[v] if names else f"view{v:03d}"
         n_img = np.full((h, w, 3), np.nan, np.float32)
         n_img[r, c] = nrm[sel]
-        written.append(write_image(out / f"{name}_normal.exr", n_img,
-                                   attributes={"brdfcap:frame": "world, unit normals"}))
-        if meas is not None:
-            a_img = np.asarray(meas.albedo_map, np.float32)
-        else:
+        if not one_camera:
+            written.append(write_image(out / f"{name}_normal.exr", n_img,
+                                       attributes={"brdfcap:frame": "world, unit normals"}))
+        if meas is None:
             a_img = np.full((h, w, ratio.shape[1]), np.nan, np.float32)
             a_img[r, c] = ratio[sel]
-        written.append(write_image(out / f"{name}_albedo.exr", a_img))
+            written.append(write_image(out / f"{name}_albedo.exr", a_img))
     return written
 
 

@@ -34,7 +34,8 @@ def maps_of_run(results: dict, out: Path, results_path: Path) -> list[Path]:
     _, samples, _ = reconstruct_capture(cap, opts)
     fit = fit_capture(cap, samples, opts)
     return write_maps(out / "maps", samples, fit, [v.radiance.shape[:2] for v in cap.views],
-                      view_names(cap))
+                      view_names(cap),
+                      one_camera=cap.config.geometry_source == "normal_map")
 
 
 @click.command("export")

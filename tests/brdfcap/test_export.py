@@ -202,3 +202,28 @@ def test_export_cli_on_a_run(tiny_template, tmp_path):
     assert abs(float(np.nanmedian(a)) - 1.0) < 0.05
     r = CliRunner().invoke(main, ["export", str(tmp_path / "nowhere"), str(out)])
     assert r.exit_code == 1 and "no results.json here" in r.output
+
+
+def test_export_maps_of_a_directional_capture(tmp_path):
+    # DiLiGenT layout: one camera, many lights, per-pixel BRDF map (brdf-map); the normal map is
+    # written once, the albedo map once, and the glTF/Mitsuba material is the median Phong fit
+    from brdfcap.capture.diligent import import_diligent, write_synthetic_diligent
+
+    write_synthetic_diligent(tmp_path / "layout", size=40, n_lights=24, noise_rel=0.005,
+                             kd=(0.6, 0.5, 0.4), ks=(0.2, 0.2, 0.2), shininess=20.0)
+    cap = import_diligent(tmp_path / "layout", tmp_path / "cap")
+    res = tmp_path / "res"
+    run_capture(cap, res, RunOptions())
+    out = tmp_path / "exp"
+    r = CliRunner().invoke(main, ["export", str(res), str(out), "--maps"])
+    assert r.exit_code == 0, r.output
+    assert "skipped lighting" in r.output  # directional lights: no SH lighting to export
+    assert not list((out / "maps").glob("*_normal.exr"))
+    n = read_pixels(out / "maps" / "normal.exr")[0]
+    ok = np.isfinite(n).all(-1)
+    assert ok.sum() > 500 and np.allclose(np.linalg.norm(n[ok], axis=-1), 1.0, atol=1e-3)
+    a = read_pixels(out / "maps" / "albedo.exr")[0]
+    assert np.allclose(np.nanmedian(a.reshape(-1, a.shape[-1]), 0), [0.6, 0.5, 0.4], atol=0.05)
+    doc = json.loads((out / "material.gltf").read_text())
+    validate_gltf(doc)
+    assert doc["materials"][0]["extras"]["brdfcap"]["model"] == "phong"
