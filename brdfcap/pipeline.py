@@ -9,7 +9,6 @@ is assembled by :mod:`brdfcap.reports.assemble` and the outputs written by the o
 
 from __future__ import annotations
 
-import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,8 +21,10 @@ from brdfcap.capture.probes import known_sh_lighting
 from brdfcap.capture.texture_model import texture_model_from_config
 from brdfcap.capture.types import Capture
 from brdfcap.core.atomic import write_json_atomic
+from brdfcap.core.device import resolve_device
 from brdfcap.core.errors import FitError
 from brdfcap.core.jsonsafe import json_safe
+from brdfcap.core.profiling import StageProfiler
 from brdfcap.core.provenance import config_record, provenance, versions
 from brdfcap.fit.lighting import AlbedoFit, SHFit
 from brdfcap.fit.problems import FitOptions, FitResult, Known, get_problem, solve_problem
@@ -34,6 +35,7 @@ from brdfcap.reports.html import ReportInputs, write_report
 from brdfcap.results_io import RESULTS_FORMAT, results_record, write_coefficients_csv
 
 __all__ = ["RunOptions", "RunContext", "RunOutcome", "run_capture", "fit_capture", "known_of",
+           "reconstruct_capture",
            "RESULTS_FORMAT", "versions"]
 
 
@@ -42,6 +44,9 @@ class RunOptions:
     """Options of ``brdfcap run`` that change results."""
 
     lmax: int = 2
+    #: torch device of samples and fit: "auto" (CUDA when present, else CPU), "cpu",
+    #: "cuda", "cuda:N" (brdfcap.core.device.resolve_device); results.json "device" is
+    #: the resolved one
     device: str = "cpu"
     #: a registered problem (brdfcap.fit.problems.PROBLEMS): "auto" (Lambertian lighting,
     #: per-pixel BRDF map or directional albedo, by capture), "lighting", "brdf", "both", ...
@@ -115,13 +120,14 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
     return solve_problem(options.problem, samples, known_of(capture, options), fit_opts)
 
 
-def _reconstruct(capture: Capture, options: RunOptions) -> tuple[Geometry, Samples, list[str]]:
+def reconstruct_capture(capture: Capture, options: RunOptions
+                        ) -> tuple[Geometry, Samples, list[str]]:
     """Geometry (mesh or normal map, frame-checked) and per-pixel samples; their warnings."""
     geom: Geometry = compute_capture_geometry(capture)
     warnings = list(capture.config.warnings)
     if capture.config.geometry_source == "normal_map":
         warnings += apply_frame_check(capture, geom)  # raises on a wrong normals frame
-    samples = build_samples(capture, geom, device=options.device)
+    samples = build_samples(capture, geom, device=resolve_device(options.device))
     for g in geom.views:
         warnings += g.warnings
     return geom, samples, warnings
@@ -145,19 +151,19 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     if ctx.provenance is None:
         ctx.provenance = provenance(capture_dir, opts)
     out = Path(out_dir)
-    timings: dict[str, float] = {}
+    device = resolve_device(opts.device)  # one-line error naming what is missing
+    prof = StageProfiler(cuda=device.type == "cuda")
 
     @contextmanager
     def stage(name: str):
         (ctx.on_stage or (lambda _: None))(name)
-        t0 = time.perf_counter()
-        yield
-        timings[name] = time.perf_counter() - t0
+        with prof.stage(name):
+            yield
 
     with stage("capture"):
         cap = load_capture(capture_dir)
     with stage("reconstruct"):
-        geom, samples, warnings = _reconstruct(cap, opts)
+        geom, samples, warnings = reconstruct_capture(cap, opts)
     with stage("fit"):
         fit = fit_capture(cap, samples, opts)
     with stage("report"):
@@ -168,7 +174,9 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
                                  device=str(samples.normal.device))
         figs = report_figures(cap, geom, samples, fit, results, out)
         results["summary"] = summary = summary_lines(results, fit, geom)
-    results["timings_s"] = timings
+    timing = prof.record()
+    results["timings_s"] = {k: v["wall_s"] for k, v in timing["stages"].items()}
+    results["timings"] = timing
     results = json_safe(results)
     report_path = write_report(out / "report.html",
                                ReportInputs(results=results, figures=figs, summary=summary,

@@ -1,4 +1,4 @@
-"""Command-line interface: ``brdfcap run | simulate | demo | bench | import-diligent | envmap-sh``.
+"""Command-line interface: ``brdfcap run | simulate | demo | bench | export | …``.
 
 One module per command; this package only builds the ``brdfcap`` group from them. User errors
 (:class:`brdfcap.core.errors.BrdfcapError`) print one line naming the file and the problem and
@@ -18,6 +18,7 @@ from .bench import bench_cmd
 from .common import CliState
 from .demo import demo_cmd
 from .envmap_sh import envmap_sh_cmd
+from .export import export_cmd
 from .import_diligent import import_diligent_cmd
 from .run import find_captures, run_cmd
 from .simulate import simulate_cmd
@@ -35,7 +36,8 @@ def main(ctx: click.Context, debug: bool) -> None:
     ctx.obj.debug = debug
 
 
-for _cmd in (run_cmd, simulate_cmd, demo_cmd, import_diligent_cmd, bench_cmd, envmap_sh_cmd):
+for _cmd in (run_cmd, simulate_cmd, demo_cmd, import_diligent_cmd, bench_cmd, envmap_sh_cmd,
+             export_cmd):
     main.add_command(_cmd)
 
 
