@@ -52,11 +52,12 @@ def _numbers(out: Path, rel: str) -> dict:
 
 
 def _assert_same(a, b, where: str = "") -> None:
-    """Equal structure and text; floats equal to 1e-12 relative.
+    """Equal structure and text; floats equal to 1e-9 relative.
 
     Dask starts workers with OMP_NUM_THREADS=1 (no oversubscription), this process may use more
     torch threads; a different thread count changes the order of floating-point sums, hence the
-    last bits (observed: 1e-15 relative), never more.
+    last bits. The evidence-based lighting fit (eigendecompositions of Gram matrices with
+    condition numbers up to ~1e12, docs/fitting.md) amplifies them: observed 1.5e-12 relative.
     """
     if isinstance(a, dict):
         assert isinstance(b, dict) and a.keys() == b.keys(), where
@@ -67,7 +68,7 @@ def _assert_same(a, b, where: str = "") -> None:
         for i, (x, y) in enumerate(zip(a, b)):
             _assert_same(x, y, f"{where}[{i}]")
     elif isinstance(a, float) and isinstance(b, float):
-        assert math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-15), (where, a, b)
+        assert math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12), (where, a, b)
     else:
         assert a == b, (where, a, b)
 
