@@ -47,8 +47,9 @@ INTERNAL_LMAX_CAP = 24
 SPLIT_BLOCKS = 16
 
 
-#: Most entries (N × K, float64) of one kept table of SH rows (:class:`SHRows`): 256 MiB.
-SH_TABLE_ENTRIES = 2 ** 25
+#: Most entries (N × K, float64) of one kept table of SH rows (:class:`SHRows`): 512 MiB
+#: (~107k samples at the internal cap L = 24).
+SH_TABLE_ENTRIES = 2 ** 26
 
 
 class SHRows:
