@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 
 import torch
+from scipy.special import gammaincinv
 
 from .filters import lambertian_filter
 from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
@@ -206,9 +207,13 @@ BAYES_DEFINITION = (
 
 
 def _chi2_quantile(q: float, dof: int) -> float:
-    from scipy.stats import chi2
+    """``q``-quantile of χ² with ``dof`` degrees of freedom: ``2 P⁻¹(dof/2, q)``.
 
-    return float(chi2.ppf(q, dof))
+    ``P⁻¹`` is the inverse regularised lower incomplete gamma function (the χ² CDF is
+    ``P(ν/2, x/2)``; Abramowitz & Stegun 1964, eq. 26.4.19); the same expression as
+    ``scipy.stats.chi2.ppf``, without importing ``scipy.stats`` (~1 s on a cold start).
+    """
+    return float(2.0 * gammaincinv(0.5 * dof, q))
 
 
 def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,

@@ -36,8 +36,8 @@ from .lighting import SHFit
 from .sh import band_of_index, real_sh
 from .solve import noise_weights, restrict, solve_bayes, solve_wls
 
-__all__ = ["fit_lighting", "lighting_design", "internal_lmax", "INTERNAL_REL",
-           "INTERNAL_LMAX_CAP"]
+__all__ = ["fit_lighting", "lighting_design", "internal_lmax", "SHRows", "INTERNAL_REL",
+           "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -47,13 +47,46 @@ INTERNAL_LMAX_CAP = 24
 SPLIT_BLOCKS = 16
 
 
+#: Most entries (N × K, float64) of one kept table of SH rows (:class:`SHRows`): 512 MiB
+#: (~107k samples at the internal cap L = 24).
+SH_TABLE_ENTRIES = 2 ** 26
+
+
+class SHRows:
+    """Real SH rows of one fixed set of directions, evaluated once and sliced.
+
+    The columns of bands ``≤ l`` are a prefix of those of any larger bandwidth (ordering
+    ``l(l+1)+m``, ``docs/conventions.md``), so one table at the largest bandwidth asked for
+    serves every smaller one. Tables above :data:`SH_TABLE_ENTRIES` entries are not kept (the
+    rows are then evaluated per chunk, as without a table).
+    """
+
+    def __init__(self, dirs: torch.Tensor, limit: int = SH_TABLE_ENTRIES):
+        self.dirs, self.limit = dirs, limit
+        self.table: torch.Tensor | None = None
+        self.lmax = -1
+
+    def __call__(self, s: int, e: int, lmax: int) -> torch.Tensor:
+        """Rows ``s:e`` of ``real_sh(dirs, lmax)``, ``(e - s, (lmax+1)²)``."""
+        k = (lmax + 1) ** 2
+        if lmax > self.lmax:
+            if self.dirs.shape[0] * k > self.limit:
+                return real_sh(self.dirs[s:e], lmax)
+            self.table, self.lmax = real_sh(self.dirs, lmax), lmax
+        return self.table[s:e, :k]
+
+
 def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor | None,
-                    lmax: int):
+                    lmax: int, tables: tuple[SHRows, SHRows | None] | None = None):
     """Design of the lighting problem for ``spec`` (module doc).
 
     Returns ``(f, scale)``: ``f(start, stop)`` gives rows ``(n, K)`` (then channel ``c`` is
-    ``scale[c] · f``) or ``(n, C, K)`` (``scale`` is ``None``).
+    ``scale[c] · f``) or ``(n, C, K)`` (``scale`` is ``None``). ``tables``: :class:`SHRows` of
+    ``normal`` and ``reflected`` to reuse across designs of several bandwidths.
     """
+    if tables is None:
+        tables = (SHRows(normal, 0), None if reflected is None else SHRows(reflected, 0))
+    sh_n, sh_r = tables
     band = band_of_index(lmax).to(normal.device)
     fd = diffuse_filter(lmax).to(normal.device)[band]
     fs = specular_filter(spec, lmax).to(normal.device)[band]
@@ -63,14 +96,14 @@ def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tenso
     if spec_on and reflected is None:
         raise ValueError(f"a {spec.model} BRDF needs the reflected view directions")
     if not spec_on:  # shared design, per-channel scale kd (see solve_wls(channel_scale=...))
-        return (lambda s, e: real_sh(normal[s:e], lmax) * fd), kd
+        return (lambda s, e: sh_n(s, e, lmax) * fd), kd
     if not bool((kd != 0).any()):
-        return (lambda s, e: real_sh(reflected[s:e], lmax) * fs), ks
+        return (lambda s, e: sh_r(s, e, lmax) * fs), ks
 
     def design(s: int, e: int) -> torch.Tensor:
-        a = (real_sh(normal[s:e], lmax) * fd)[:, None, :] * kd[None, :, None]
+        a = (sh_n(s, e, lmax) * fd)[:, None, :] * kd[None, :, None]
         if spec_on:
-            a = a + (real_sh(reflected[s:e], lmax) * fs)[:, None, :] * ks[None, :, None]
+            a = a + (sh_r(s, e, lmax) * fs)[:, None, :] * ks[None, :, None]
         return a
 
     return design, None
@@ -260,10 +293,11 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     lrep = 0 if auto else int(lmax)
     nsamp = int(((w > 0).any(-1)).sum())
     split = _split_halves(n.shape[0], view, good)
+    tables = (SHRows(n), None if r is None else SHRows(r))  # SH rows evaluated once, sliced
 
     def solve_to(cands):
         band = band_of_index(cands[-1]).to(n.device)
-        design, cscale = lighting_design(spec, n, r, cands[-1])
+        design, cscale = lighting_design(spec, n, r, cands[-1], tables)
         return solve_bayes(design, b, w, band, noise_known=noise_known, noise_source=src,
                            chunk=chunk, channel_scale=cscale, split=split,
                            bandwidths=cands), cscale
@@ -282,7 +316,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     lint = int(full.band.max())
     cands = [lint]
     band = band_of_index(lint).to(n.device)
-    design, _ = lighting_design(spec, n, r, lint)
+    design, _ = lighting_design(spec, n, r, lint, tables)
     if noise_model is not None and getattr(noise_model, "is_known", False):
         pred = b - full.bayes.residual
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),

@@ -400,40 +400,78 @@ class BayesExtras:
     split_covariance: torch.Tensor | None = None  # (2, C, K, K)
 
 
+#: The Gram is multiplied in this many column blocks, only on and below the diagonal
+#: (``(B+1)/2B`` of a full product; the upper triangle is its mirror).
+GRAM_BLOCKS = 4
+
+
+def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor) -> torch.Tensor:
+    """``aᵀ diag(w) a`` (K, K) for a float64 block ``a`` (n, K) and weights ``wcol`` (n, 1).
+
+    Columns that are identically zero in the block (e.g. the odd bands ``l ≥ 3`` of a
+    Lambertian design, where ``Â_l = 0``; R&H 2001 eq. 9) contribute exact zeros and are not
+    multiplied; of the rest only the lower block triangle is (the Gram is symmetric).
+    """
+    k = a.shape[1]
+    live = (a[:64] != 0).any(0)  # most columns show a nonzero in their first rows
+    if not bool(live.all()):
+        maybe = torch.nonzero(~live).flatten()
+        live[maybe] = (a[:, maybe] != 0).any(0)
+    nz = torch.nonzero(live).flatten()
+    g = torch.zeros(k, k, dtype=torch.float64, device=a.device)
+    kz = int(nz.numel())
+    if kz == 0:
+        return g
+    az = a if kz == k else a[:, nz]
+    awz = az * wcol
+    gz = g if kz == k else torch.zeros(kz, kz, dtype=torch.float64, device=a.device)
+    step = -(-kz // GRAM_BLOCKS)
+    for j in range(0, kz, step):
+        blk = awz[:, j:].T @ az[:, j:j + step]  # rows j.., columns j..j+step
+        gz[j:, j:j + step] = blk
+        gz[j:j + step, j + step:] = blk[step:].T
+    if kz < k:
+        g[nz[:, None], nz[None, :]] = gz
+    return g
+
+
 def _accumulate(design, b, w, cs, chunk, split):
-    """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K) and their per-half copies."""
+    """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K) and their per-half copies.
+
+    One pass over the rows in chunks; each half's Gram from its own rows (so each row enters
+    one product), the total is their sum. Shared design and weights: one Gram for all
+    channels, times ``channel_scale²``.
+    """
     n, nch = b.shape
-    gram = rhs = halves = None
+    halves = None
     shared_w = all(torch.equal(w[:, 0], w[:, c]) for c in range(1, nch))
     for s, e, a in _design_chunks(design, n, chunk):
         a = a.to(torch.float64)
-        if gram is None:
+        if halves is None:
             k = a.shape[-1]
             halves = (torch.zeros(2, nch, k, k, dtype=torch.float64, device=b.device),
                       torch.zeros(2, nch, k, dtype=torch.float64, device=b.device))
-        # each half from its own rows (one product per row in all), the total is their sum
-        hs = split[s:e] if split is not None else torch.zeros(e - s, dtype=torch.long,
-                                                             device=b.device)
-        for h in (0, 1):
-            rows = hs == h
-            if not bool(rows.any()):
-                continue
-            ah, wh, bh = a[rows], w[s:e][rows], b[s:e][rows]
+        for h in ((0,) if split is None else (0, 1)):
+            if split is None:
+                ah, wh, bh = a, w[s:e], b[s:e]
+            else:
+                rows = split[s:e] == h
+                if not bool(rows.any()):
+                    continue
+                ah, wh, bh = a[rows], w[s:e][rows], b[s:e][rows]
+            wb = wh * bh
             if ah.ndim == 2 and shared_w:
-                aw = ah * wh[:, :1]
-                g1, r1 = aw.T @ ah, aw.T @ bh
+                g1, r1 = _weighted_gram(ah, wh[:, :1]), ah.T @ wb  # (K, K), (K, C)
                 for c in range(nch):
                     sc = 1.0 if cs is None else cs[c]
-                    halves[0][h, c] += g1 * sc * sc
+                    halves[0][h, c] += g1 * (sc * sc)
                     halves[1][h, c] += r1[:, c] * sc
                 continue
             for c in range(nch):
                 ac = ah if ah.ndim == 2 else ah[:, c, :]
-                if cs is not None:
-                    ac = ac * cs[c]
-                awc = ac * wh[:, c:c + 1]
-                halves[0][h, c] += awc.T @ ac
-                halves[1][h, c] += awc.T @ bh[:, c]
+                sc = 1.0 if cs is None else cs[c]
+                halves[0][h, c] += _weighted_gram(ac, wh[:, c:c + 1]) * (sc * sc)
+                halves[1][h, c] += (ac.T @ wb[:, c]) * sc
     gram, rhs = halves[0].sum(0), halves[1].sum(0)
     return gram, rhs, halves if split is not None else None
 
