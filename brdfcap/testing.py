@@ -15,7 +15,7 @@ from brdfcap.capture.simulate import simulate
 from brdfcap.reconstruct.mesh import uv_sphere
 
 __all__ = ["unit", "random_lighting", "scene_text", "TINY_SCENE", "make_tiny_capture",
-           "reference_dir"]
+           "reference_dir", "SHADOW_ALBEDO", "write_ply", "shadow_scene_toml"]
 
 #: A tiny (48x48 px, 2 views) noisy Lambertian sphere under Grace Cathedral (R&H 2001).
 TINY_SCENE = """
@@ -133,3 +133,47 @@ def make_tiny_capture(directory: Path) -> Path:
 def reference_dir(repo: Path) -> Path:
     """``<repo>/../shared/reference``: the optional real reference data (may be absent)."""
     return Path(repo).resolve().parent / "shared" / "reference"
+
+
+#: Albedo of :func:`shadow_scene_toml`'s material.
+SHADOW_ALBEDO = [0.8, 0.6, 0.4]
+
+
+def write_ply(path: Path, mesh) -> Path:
+    """Write a :class:`brdfcap.reconstruct.mesh.Mesh` (vertices, faces) as a PLY file."""
+    import numpy as np
+    import open3d as o3d  # heavy optional import, only when a mesh is written
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                  o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
+    o3d.io.write_triangle_mesh(str(path), m)
+    return Path(path)
+
+
+def shadow_scene_toml(mesh_path: Path, distance: float, noise: str = "") -> str:
+    """Return a scene TOML: a mesh under two directional lights, 2 views of 96 px (shadow tests)."""
+    return f"""
+name = "shadow test"
+[geometry]
+shape = "mesh"
+mesh = "{mesh_path}"
+[material]
+albedo = {SHADOW_ALBEDO}
+[lighting]
+kind = "directional"
+[[lighting.lights]]
+direction = [0.2, 0.9, 0.4]
+radiance = [3.0, 3.0, 3.0]
+[[lighting.lights]]
+direction = [-0.9, 0.1, 0.3]
+radiance = [2.0, 2.0, 2.0]
+[camera]
+width = 96
+height = 96
+fov_deg = 30.0
+[views]
+count = 2
+distance = {distance}
+elevation_deg = 20.0
+{noise}
+"""

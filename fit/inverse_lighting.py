@@ -33,6 +33,7 @@ from .conditioning import (
     suggest_lmax,
 )
 from .lighting import SHFit
+from .memory import check_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights, restrict, solve_bayes, solve_wls
 
@@ -248,11 +249,7 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
     except (KeyError, ValueError, ZeroDivisionError):
         prediction = None
     if not scale_fixing:
-        given = "; ".join(f"{k} " + ", ".join(f"{x:.4g}" for x in (v if isinstance(v, list)
-                                                                   else [v]))
-                          for k, v in spec.parameters().items())
-        scale_fixing = (f"BRDF known ({spec.model}: {given}): the absolute scale "
-                        f"of the lighting follows from the BRDF's scale")
+        scale_fixing = _scale_fixing_text(spec)
     fit = SHFit(lmax=lmax, coefficients=sol.coefficients, stderr=sol.stderr,
                 determined=sol.determined, chi2_reduced=sol.chi2_reduced,
                 noise_source=sol.noise_source, bands=rows, ill_conditioned_from_l=ill,
@@ -292,6 +289,13 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     auto = lmax == "auto"
     lrep = 0 if auto else int(lmax)
     nsamp = int(((w > 0).any(-1)).sum())
+    # issue 17 row 11: refuse before allocating. At least the requested bands are solved: a
+    # chunk of design rows plus, per channel, the Gram of all rows and of each half and its
+    # eigendecomposition (~4 K x K float64 matrices).
+    k_req = (lrep + 1) ** 2
+    check_memory(8 * (min(n.shape[0], chunk) * k_req + 4 * b.shape[-1] * k_req ** 2),
+                 f"the Bayesian lighting fit at lmax = {lrep} ({k_req} coefficients per channel)",
+                 n.device)
     split = _split_halves(n.shape[0], view, good)
     tables = (SHRows(n), None if r is None else SHRows(r))  # SH rows evaluated once, sliced
 
@@ -355,8 +359,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         ill = next((r_["l"] for r_ in rows if not r_["determined"]), None)
     stderr = torch.where(det, post_se, torch.full_like(post_se, math.inf))
     if not scale_fixing:
-        scale_fixing = (f"BRDF known ({spec.model}, {spec.parameters()}): the absolute scale "
-                        f"of the lighting follows from the BRDF's scale")
+        scale_fixing = _scale_fixing_text(spec)
     bx = full.bayes
     fit = SHFit(lmax=lrep, coefficients=sol.coefficients, stderr=stderr, determined=det,
                 chi2_reduced=full.chi2_reduced, noise_source=full.noise_source, bands=rows,
@@ -382,3 +385,12 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     fit.adequacy = adequacy
     fit.suggested_lmax = suggested
     return fit
+
+
+def _scale_fixing_text(spec: BRDFSpec) -> str:
+    """Say how the lighting's absolute scale is fixed, with the known BRDF's parameters."""
+    given = "; ".join(f"{k} " + ", ".join(f"{x:.4g}" for x in (v if isinstance(v, list)
+                                                               else [v]))
+                      for k, v in spec.parameters().items())
+    return (f"BRDF known ({spec.model}: {given}): the absolute scale of the lighting follows "
+            f"from the BRDF's scale")

@@ -228,8 +228,11 @@ def test_problem_aldrian_smith_with_texture_model(captures, tmp_path):
     """`[texture_model]` in capture.toml: the pipeline fits A&S with it.
 
     The simulated sphere has grey albedo 0.3 and R&H's Phong lobe (ks 0.5, s 20) under the
-    band-limited Grace lighting, so the truth is exact: L = Grace, κ_l = ks Â_l(s) =
-    0.5·[1, 21/22, 0.8696] (Funk-Hecke, R&H 2001). The texture model: mean 0.3 plus two smooth
+    band-limited Grace lighting: L = Grace, κ_l = ks Â_l(s) = 0.5·[1, 21/22, 0.8696]
+    (Funk-Hecke, R&H 2001). The capture is rendered by the independent reference renderer
+    (issue 13), whose Phong lobe is clamped at the horizon; A&S's SH model is not, so the
+    recovered lighting bands carry that model error: measured 0.57% of L00 (1e-2 tolerance
+    below; it was 0.15% when the data came from the SH forward model itself). The texture model: mean 0.3 plus two smooth
     components on a Fibonacci sphere of vertices. With a uniform albedo the specular DC κ_0 and
     the diffuse DC are separable only as (albedo + κ_0)·L_00 (reported as an ambiguity); κ_1,
     κ_2 and the lighting bands ≥ 1 are determined.
@@ -258,7 +261,7 @@ def test_problem_aldrian_smith_with_texture_model(captures, tmp_path):
     assert max(abs(k[i] - kappa[i]) for i in (1, 2)) < 0.01
     est = r["lighting"]["coefficients"]
     err = max(abs(e - t) for re, rt in zip(est[1:], GRACE_RH2001[1:]) for e, t in zip(re, rt))
-    assert err < 3e-3 * GRACE_RH2001[0][0]
+    assert err < 1e-2 * GRACE_RH2001[0][0]
     for c in range(3):  # the determined DC combination
         dc, dc_t = (a["albedo_mean"][c] + k[0]) * est[0][c], 0.8 * GRACE_RH2001[0][c]
         assert abs(dc - dc_t) < 5e-3 * dc_t

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from brdfcap.capture.probes import read_envmap
 from brdfcap.capture.reference import LatLongProbe, render_environment, render_lights
 from brdfcap.fit import envmap
 from brdfcap.fit.brdf import make_brdf
@@ -60,7 +61,7 @@ def test_lambertian_equals_rh_irradiance_for_band_limited_probe():
     The Grace Cathedral probe projected to lmax 2 and reconstructed as a 128×256 image (cubic
     interpolation): every pixel within 1e-4 relative.
     """
-    light = envmap.project_envmap(envmap.read_envmap(REFERENCE / "probes" / "grace.hdr")
+    light = envmap.project_envmap(read_envmap(REFERENCE / "probes" / "grace.hdr")
                                   [..., :3].double(), 2)
     b, truth = _lambertian_vs_rh(light, _dirs(300))
     rel = ((b - truth).abs() / truth.abs()).max()

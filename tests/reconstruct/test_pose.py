@@ -161,7 +161,9 @@ def test_capture_registration_end_to_end(bunny, tmp_path):
     from brdfcap.capture.load import load_capture
     from brdfcap.capture.simulate import simulate, write_capture_toml
     from brdfcap.reconstruct.geometry import build_samples, compute_capture_geometry
-    from tests.test_shadows import _scene_toml, _write_ply
+
+    from brdfcap.testing import shadow_scene_toml as _scene_toml
+    from brdfcap.testing import write_ply as _write_ply
 
     mesh, scene = bunny
     (tmp_path / "scene.toml").write_text(_scene_toml(_write_ply(tmp_path / "b.ply", mesh), 0.45))

@@ -15,46 +15,12 @@ from brdfcap.reconstruct.geometry import _scene, build_samples, compute_geometry
 from brdfcap.reconstruct.mesh import load_mesh, mesh_from_arrays, uv_sphere
 from brdfcap.reconstruct.shadows import shadow_mask, shadow_policy
 
+from brdfcap.testing import SHADOW_ALBEDO as ALBEDO
+from brdfcap.testing import shadow_scene_toml as _scene_toml
+from brdfcap.testing import write_ply as _write_ply
+
 REFERENCE = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference"
 BUNNY = REFERENCE / "mesh" / "bun_zipper.ply"
-ALBEDO = [0.8, 0.6, 0.4]
-
-
-def _write_ply(path: Path, mesh) -> Path:
-    import open3d as o3d
-
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                  o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
-    o3d.io.write_triangle_mesh(str(path), m)
-    return path
-
-
-def _scene_toml(mesh_path: Path, distance: float, noise: str = "") -> str:
-    return f"""
-name = "shadow test"
-[geometry]
-shape = "mesh"
-mesh = "{mesh_path}"
-[material]
-albedo = {ALBEDO}
-[lighting]
-kind = "directional"
-[[lighting.lights]]
-direction = [0.2, 0.9, 0.4]
-radiance = [3.0, 3.0, 3.0]
-[[lighting.lights]]
-direction = [-0.9, 0.1, 0.3]
-radiance = [2.0, 2.0, 2.0]
-[camera]
-width = 96
-height = 96
-fov_deg = 30.0
-[views]
-count = 2
-distance = {distance}
-elevation_deg = 20.0
-{noise}
-"""
 
 
 @pytest.fixture(scope="module")
