@@ -203,7 +203,7 @@ def test_capture_registration_end_to_end(bunny, tmp_path):
 
     res = run_capture(out, tmp_path / "run")
     html = (tmp_path / "run" / "report.html").read_text()
-    assert "Per view: registration" in html
+    assert "Per image: registration" in html
     assert "refinement.silhouette_iou" in html and "pnp.reprojection_rms_px" in html
     assert "at least 6" in html
     assert res.results["images"][0]["registration"]["refinement"]["silhouette_iou"] > 0.99
