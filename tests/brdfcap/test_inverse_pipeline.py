@@ -233,9 +233,10 @@ def test_problem_aldrian_smith_with_texture_model(captures, tmp_path):
     (issue 13), whose Phong lobe is clamped at the horizon; A&S's SH model is not, so the
     recovered lighting bands carry that model error: measured 0.57% of L00 (1e-2 tolerance
     below; it was 0.15% when the data came from the SH forward model itself). The texture
-    model: mean 0.3 plus two smooth components on a Fibonacci sphere of vertices. With a uniform albedo the specular DC κ_0 and
-    the diffuse DC are separable only as (albedo + κ_0)·L_00 (reported as an ambiguity); κ_1,
-    κ_2 and the lighting bands ≥ 1 are determined.
+    model: mean 0.3 plus two smooth components on a Fibonacci sphere of vertices. With a
+    uniform albedo the specular DC κ_0 and the diffuse DC are separable only as
+    (albedo + κ_0)·L_00 (reported as an ambiguity); κ_1, κ_2 and the lighting bands ≥ 1 are
+    determined.
     """
     import math
     import shutil
