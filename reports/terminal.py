@@ -36,7 +36,7 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
     ill = _ill_bands(results)
     if ill:
         lines.append(f"  ill-conditioned lighting bands: l = {', '.join(map(str, ill))}")
-    lines.append(f"  model explains the data: {h['verdict'][1]}")
+    lines.append(f"  model adequacy: {h['verdict'][1]}")
     gt = results.get("ground_truth") or {}
     det = [b for b in ((gt.get("lighting") or {}).get("bands") or [])
            if b.get("mean_z2") is not None and b["l"] not in ill]

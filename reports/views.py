@@ -87,7 +87,8 @@ def _verdict(results: dict) -> tuple[str, str]:
                 (results.get("conditioning") or {}).get("adequacy")):
         if isinstance(src, dict) and src.get("verdict"):
             detail = src.get("message") or src.get("reason") or ""
-            return ("ok" if str(src.get("passed", src.get("ok", True))).lower() != "false"
+            passed = src.get("adequate", src.get("passed", src.get("ok", True)))
+            return ("ok" if str(passed).lower() != "false"
                     else "bad", f"{src['verdict']}" + (f": {detail}" if detail else ""))
     fit = results.get("fit") or {}
     rel = fit.get("residual_rel")

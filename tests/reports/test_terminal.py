@@ -18,7 +18,7 @@ def test_run_prints_summary_json_and_quiet(tmp_path):
     assert r.exit_code == 0, r.output
     assert r.output.startswith("ok: ")
     assert " ± " in r.output and "ill-conditioned bands: from l = 3" in r.output
-    assert "model explains the data:" in r.output and "report.html" in r.output
+    assert "model adequacy:" in r.output and "report.html" in r.output
     assert "None" not in r.output and "[[" not in r.output
     r = CliRunner().invoke(main, ["run", str(cap), "--out", str(tmp_path / "b"), "--lmax", "4",
                                   "--no-progress", "--json"])
