@@ -29,31 +29,7 @@ from pathlib import Path
 
 import psutil
 
-TINY_SCENE = """
-name = "tiny sphere"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "lambertian"
-albedo = [1.0, 1.0, 1.0]
-[lighting]
-kind = "environment"
-sh = "grace-rh2001"
-[camera]
-model = "pinhole"
-width = 48
-height = 48
-fov_deg = 40.0
-[views]
-count = 2
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.01
-read = 0.002
-seed = 0
-"""
+from brdfcap.testing import make_tiny_capture
 
 
 class _RSS:
@@ -112,18 +88,7 @@ def profile_capture(work: Path) -> dict:
 
 def make_tiny_root(work: Path, n: int) -> Path:
     """``n`` copies of a tiny capture (coarse mesh inside each)."""
-    import open3d as o3d
-    from brdfcap.capture.simulate import simulate
-    from brdfcap.reconstruct.mesh import uv_sphere
-
-    (work / "scene.toml").write_text(TINY_SCENE)
-    cap = simulate(work / "scene.toml", work / "tiny")
-    m = uv_sphere(1.0, 24, 48)
-    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices),
-                                   o3d.utility.Vector3iVector(m.faces.astype("int32")))
-    om.vertex_normals = o3d.utility.Vector3dVector(m.vertex_normals)
-    (cap / "sphere.ply").unlink()
-    o3d.io.write_triangle_mesh(str(cap / "sphere.ply"), om)
+    cap = make_tiny_capture(work / "tiny", shared_mesh=False)
     root = work / "root"
     for i in range(n):
         shutil.copytree(cap, root / f"cap_{i:02d}")

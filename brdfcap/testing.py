@@ -104,11 +104,13 @@ elevation_deg = 30.0
 """
 
 
-def make_tiny_capture(directory: Path) -> Path:
-    """Simulate :data:`TINY_SCENE` into ``directory/capture`` with a coarse ``../sphere.ply``.
+def make_tiny_capture(directory: Path, shared_mesh: bool = True) -> Path:
+    """Simulate :data:`TINY_SCENE` into ``directory/capture`` with a coarse sphere mesh.
 
-    The simulator writes a 256x512 sphere; a 24x48 one beside the capture keeps runs short.
-    Returns the capture directory.
+    The simulator writes a 256x512 sphere; a 24x48 one keeps runs short. With ``shared_mesh``
+    it lies beside the capture (``../sphere.ply``, so ``[paths] root = ".."`` widens the input
+    folder, docs/capture-format.md#where-inputs-may-live); otherwise it replaces the capture's
+    own ``sphere.ply`` and every input stays inside the folder. Returns the capture directory.
     """
     import open3d as o3d  # heavy optional import, only when a capture is made
 
@@ -121,11 +123,12 @@ def make_tiny_capture(directory: Path) -> Path:
     om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices),
                                    o3d.utility.Vector3iVector(m.faces.astype("int32")))
     om.vertex_normals = o3d.utility.Vector3dVector(m.vertex_normals)
+    if not shared_mesh:
+        o3d.io.write_triangle_mesh(str(cap / "sphere.ply"), om)
+        return cap
     o3d.io.write_triangle_mesh(str(cap.parent / "sphere.ply"), om)
     toml = (cap / "capture.toml").read_text().replace('mesh = "sphere.ply"',
                                                       'mesh = "../sphere.ply"')
-    # the shared mesh lies outside the capture: widen the input folder explicitly
-    # (docs/capture-format.md#where-inputs-may-live)
     (cap / "capture.toml").write_text(toml + '\n[paths]\nroot = ".."\n')
     return cap
 

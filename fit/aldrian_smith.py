@@ -455,7 +455,7 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
     AldrianSmithFit
     """
     try:
-        return _fit(**{k: v for k, v in locals().items()})
+        return _fit(**locals())
     except (torch.linalg.LinAlgError, RuntimeError) as e:
         if isinstance(e, FitError) or "singular" not in str(e):
             raise
@@ -464,16 +464,10 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
                        "lower --lmax or add views with more distinct normals") from None
 
 
-def _fit(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
-         lmax: int = 2, specular_lmax: int = 4,
-         texture_mean: torch.Tensor | None = None,
-         texture_pcs: torch.Tensor | None = None,
-         colour=None, grayworld: float = 0.0, simplicity: float = 0.0,
-         smoothness: float = 0.1, edges: torch.Tensor | None = None,
-         positions: torch.Tensor | None = None, albedo_level: float = 0.5,
-         albedo_prior: float = 1e-3, variance: torch.Tensor | None = None,
-         max_outer: int = 3, inner_iter: int = 20, refine_iter: int = 100,
-         tol: float = 1e-12) -> AldrianSmithFit:
+def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, texture_pcs, colour,
+         grayworld, simplicity, smoothness, edges, positions, albedo_level, albedo_prior,
+         variance, max_outer, inner_iter, refine_iter, tol) -> AldrianSmithFit:
+    """Body of :func:`fit_aldrian_smith` (its arguments and defaults, passed by keyword)."""
     n = torch.nn.functional.normalize(torch.as_tensor(normal).to(_F64), dim=-1)
     r = torch.nn.functional.normalize(torch.as_tensor(reflected).to(_F64), dim=-1)
     obs = torch.as_tensor(radiance).to(_F64)

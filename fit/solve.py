@@ -188,6 +188,23 @@ def _design_chunks(design, n: int, chunk: int):
             yield s, min(s + chunk, n), design[s:s + chunk]
 
 
+def _usable(b: torch.Tensor, w: torch.Tensor, band: torch.Tensor):
+    """Float64 ``b``, ``w`` with non-finite or non-positive weights zeroed (and their ``b``).
+
+    Returns ``(b, w, band on b's device, nuse)``, ``nuse`` the ``(C,)`` count of usable
+    samples per channel; raises :class:`FitError` when no sample has positive weight.
+    """
+    b = b.to(torch.float64)
+    w = w.to(torch.float64)
+    finite = torch.isfinite(b)
+    w = torch.where(finite & torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
+    b = torch.where(finite, b, torch.zeros_like(b))
+    nuse = (w > 0).sum(0)  # (C,)
+    if int(nuse.max()) == 0:
+        raise FitError("no sample with positive weight to fit")
+    return b, w, band.to(b.device), nuse
+
+
 def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torch.Tensor,
               w: torch.Tensor, band: torch.Tensor, *, rule: str = "gcv",
               noise_known: bool = True, band_penalty: torch.Tensor | None = None,
@@ -232,18 +249,10 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
     check_wls_memory(design, b, band, chunk=chunk, keep_covariance=keep_covariance)
     if rule not in REGULARIZATION_RULES:
         raise ValueError(f"unknown regularisation rule {rule!r}; valid: {REGULARIZATION_RULES}")
-    b = b.to(torch.float64)
-    w = w.to(torch.float64)
+    b, w, band, nuse = _usable(b, w, band)
     n, nch = b.shape
     dev = b.device
-    band = band.to(dev)
     k = int(band.shape[0])
-    finite = torch.isfinite(b)
-    w = torch.where(finite & torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
-    b = torch.where(finite, b, torch.zeros_like(b))
-    nuse = (w > 0).sum(0)  # (C,)
-    if int(nuse.max()) == 0:
-        raise FitError("no sample with positive weight to fit")
     if rule == "discrepancy" and not noise_known:
         rule_used = "gcv (discrepancy needs a noise model; none given)"
     else:
@@ -527,18 +536,10 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         ``stderr`` the posterior s.d. (``inf`` where not determined); ``resolution`` the
         diagonal of the resolution matrix ``1 − post/prior``; ``bayes`` a :class:`BayesExtras`.
     """
-    b = b.to(torch.float64)
-    w = w.to(torch.float64)
+    b, w, band, nuse = _usable(b, w, band)
     n, nch = b.shape
     dev = b.device
-    band = band.to(dev)
     k = int(band.shape[0])
-    finite = torch.isfinite(b)
-    w = torch.where(finite & torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
-    b = torch.where(finite, b, torch.zeros_like(b))
-    nuse = (w > 0).sum(0)
-    if int(nuse.max()) == 0:
-        raise FitError("no sample with positive weight to fit")
     cs = None if channel_scale is None else channel_scale.to(torch.float64).to(dev)
     if callable(design) and n * k <= MATERIALIZE_LIMIT:
         design = design(0, n)

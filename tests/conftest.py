@@ -38,50 +38,10 @@ def tiny_template(tmp_path_factory) -> Path:
 
 # --- batch tests (tests/brdfcap/): a tiny capture and roots of its copies --------------------
 
-TINY_BATCH_SCENE = """
-name = "tiny sphere"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "lambertian"
-albedo = [1.0, 1.0, 1.0]
-[lighting]
-kind = "environment"
-sh = "grace-rh2001"
-[camera]
-model = "pinhole"
-width = 48
-height = 48
-fov_deg = 40.0
-[views]
-count = 2
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.01
-read = 0.002
-seed = 0
-"""
-
-
 @pytest.fixture(scope="session")
 def tiny_capture(tmp_path_factory) -> Path:
     """One simulated tiny capture with its own coarse mesh (inputs all inside the folder)."""
-    import open3d as o3d
-    from brdfcap.capture.simulate import simulate
-    from brdfcap.reconstruct.mesh import uv_sphere
-
-    d = tmp_path_factory.mktemp("tinycap")
-    (d / "scene.toml").write_text(TINY_BATCH_SCENE)
-    cap = simulate(d / "scene.toml", d / "capture")
-    m = uv_sphere(1.0, 24, 48)  # coarse: keeps ray casting short
-    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices),
-                                   o3d.utility.Vector3iVector(m.faces.astype("int32")))
-    om.vertex_normals = o3d.utility.Vector3dVector(m.vertex_normals)
-    (cap / "sphere.ply").unlink()
-    o3d.io.write_triangle_mesh(str(cap / "sphere.ply"), om)
-    return cap
+    return make_tiny_capture(tmp_path_factory.mktemp("tinycap"), shared_mesh=False)
 
 
 @pytest.fixture

@@ -38,13 +38,7 @@ def _lighting_coverage(spec, lmax, reps, seed, hemisphere=False, known_noise=Tru
     return hits / tot, tot, min(lam_rel)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small eigen-decompositions: one thread avoids oversubscribing a shared CI box."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.mark.parametrize("case", ["lambertian-hemisphere", "phong-unknown-noise"])

@@ -25,14 +25,7 @@ from brdfcap.fit.sh import band_of_index
 
 from brdfcap.testing import unit
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small eigen-decompositions: one thread avoids oversubscribing a shared CI box."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _phong_sphere(s, seed, height, n=2000, rel_noise=0.01):

@@ -21,22 +21,15 @@ from brdfcap.fit.envmap import latlong_directions, latlong_weights, project_envm
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index, real_sh
 
-from brdfcap.testing import unit
+from brdfcap.testing import reference_dir, unit
 
 REPO = Path(__file__).resolve().parents[2]
-_CANDIDATES = [REPO / ".." / "shared" / "reference", Path("/work/shared/reference")]
-REFERENCE = next((p for p in _CANDIDATES if (p / "probes").is_dir()), _CANDIDATES[0])
+REFERENCE = reference_dir(REPO)
 needs_probes = pytest.mark.skipif(not (REFERENCE / "probes" / "grace.hdr").is_file(),
                                   reason=f"reference light probes not found under {REFERENCE}")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """The eigen-decompositions are small: one thread avoids oversubscribing a shared CI box."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _probe(name: str = "grace"):
