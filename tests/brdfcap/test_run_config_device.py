@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -11,7 +13,6 @@ from click.testing import CliRunner
 from brdfcap.cli import main
 from brdfcap.core.device import resolve_device
 from brdfcap.core.errors import BrdfcapError
-from brdfcap.core.profiling import StageProfiler
 from brdfcap.results_io import validate_results
 
 
@@ -35,15 +36,26 @@ def test_device_cuda_index_out_of_range():
         resolve_device(f"cuda:{n}")
 
 
+_PROFILE_SCRIPT = """
+import json, torch
+from brdfcap.core.profiling import StageProfiler
+p = StageProfiler(interval=0.005)
+with p.stage("small"):
+    pass
+with p.stage("big"):
+    x = torch.ones(64 * 2**20 // 8, dtype=torch.float64)  # 64 MiB, touched
+    x += 1
+    del x
+print(json.dumps(p.record()))
+"""
+
+
 def test_profiler_sees_a_stage_allocate_memory():
-    p = StageProfiler(interval=0.005)
-    with p.stage("small"):
-        pass
-    with p.stage("big"):
-        x = torch.ones(64 * 2**20 // 8, dtype=torch.float64)  # 64 MiB, touched
-        x += 1
-        del x
-    rec = p.record()
+    # in a fresh process: in the test process the allocator may hand back pages that earlier
+    # tests freed but kept resident, and RSS would not grow
+    out = subprocess.run([sys.executable, "-c", _PROFILE_SCRIPT], capture_output=True,
+                         text=True, check=True).stdout
+    rec = json.loads(out.strip().splitlines()[-1])
     big, small = rec["stages"]["big"], rec["stages"]["small"]
     assert big["peak_rss_mb"] - big["rss_start_mb"] > 50  # the 64 MiB were resident
     assert small["peak_rss_mb"] - small["rss_start_mb"] < 20
