@@ -1,9 +1,12 @@
 """``--problem both``: gauge-invariant products with their joint covariance (issue 12).
 
-Band-limited glossy sphere (R&H's Phong, lighting to l = 4 — band-limited by construction, so
-the SH forward model is the exact renderer here), 0.5% noise: the products ``f_l L_lm``,
+Glossy samples from the independent reference renderer (fixture ``phong_reference_samples``:
+R&H's Phong s = 20 with its horizon clamp + Lambertian, random SH lighting to l = 6, numerical
+integration to ``rel_tol = 1e-3``; issue 13), 0.5% noise: the products ``f_l L_lm``,
 ``kd Â_l/π L_lm`` and the total DC come back inside their 95% intervals (90-100% of them),
-with finite errors where not touched by an exact ambiguity.
+against the analytic truth (the lighting's exact SH coefficients × R&H's filters), with finite
+errors where not touched by an exact ambiguity. The render's own error (≤ 1e-3 of each pixel,
+measured 4e-4 of the DC scale in the products) stays below the noise's.
 """
 
 from __future__ import annotations
@@ -12,19 +15,15 @@ import math
 
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
-from brdfcap.fit.brdf_models import BRDFSpec, diffuse_filter, phong_sh_filter, render_sh
+from brdfcap.fit.brdf_models import diffuse_filter, phong_sh_filter
 from brdfcap.fit.sh import band_of_index
 
-from brdfcap.testing import random_lighting, unit
 
-
-def test_gauge_invariant_products_inside_their_intervals():
-    spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
-    lmax = 4
+def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples):
+    s = phong_reference_samples
+    spec, light, n, r, b = s["spec"], s["light"], s["normal"], s["reflected"], s["radiance"]
+    lmax = 6
     g = torch.Generator().manual_seed(3)
-    light = random_lighting(lmax, g, dc=1.0, amp=0.3)
-    n, r = unit(4000, g), unit(4000, g)
-    b = render_sh(spec, n, r, light)
     sd = 0.005 * float(b.abs().mean())
     bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
     fit = fit_bilinear(n, r, bn, lmax, brdf_lmax=lmax, variance=torch.full_like(b, sd ** 2))
@@ -44,7 +43,7 @@ def test_gauge_invariant_products_inside_their_intervals():
             truth.append(float(spec.kd[c]) * float(a[q["l"]]) * float(light[i, c]))
     truth = torch.tensor(truth, dtype=torch.float64)
     det = gi["determined"]
-    assert int(det.sum()) >= 60 and torch.isfinite(gi["stderr"][det]).all()
+    assert int(det.sum()) >= 200 and torch.isfinite(gi["stderr"][det]).all()
     assert torch.isinf(gi["stderr"][~det]).all()
     inside = ((gi["value"] - truth).abs() <= 1.96 * gi["stderr"])[det].double().mean()
     assert 0.90 <= float(inside) <= 1.0, float(inside)

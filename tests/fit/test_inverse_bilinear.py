@@ -1,36 +1,44 @@
-"""Problem 3 (lighting and BRDF unknown): bilinear factorisation, gauge and ambiguities."""
+"""Problem 3 (lighting and BRDF unknown): bilinear factorisation, gauge and ambiguities.
+
+The data come from the independent reference renderer (fixture ``phong_reference_samples``:
+numerical integration of the Phong point evaluation with its horizon clamp, issue 13), not from
+the SH forward model the bilinear fit inverts; the truth is the analytic one: the lighting's SH
+coefficients (band-limited, exact) times R&H's Phong filter (R&H 2001 eq. 20) and the
+clamped-cosine filter Â_l (R&H 2001 eq. 13).
+"""
 
 from __future__ import annotations
 
 import pytest
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
-from brdfcap.fit.brdf_models import BRDFSpec, phong_sh_filter, render_sh
+from brdfcap.fit.brdf_models import phong_sh_filter
 from brdfcap.fit.filters import lambertian_filter
 from brdfcap.fit.sh import band_of_index
 
-from brdfcap.testing import random_lighting, unit
 
-SPEC = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
-
-
-def _data(seed, lmax=6, n=4000, noise=0.0):
-    g = torch.Generator().manual_seed(seed)
-    light = random_lighting(lmax, g, dc=1.0, amp=0.3)
-    nrm, r = unit(n, g), unit(n, g)
-    b = render_sh(SPEC, nrm, r, light)
+def _data(samples, seed=None, noise=0.0):
+    s = samples
+    b = s["radiance"]
     if noise:
+        g = torch.Generator().manual_seed(seed)
         b = b + noise * torch.randn(b.shape, generator=g, dtype=torch.float64)
-    return light, nrm, r, b
+    return s["light"], s["normal"], s["reflected"], b
 
 
-def test_noise_free_gauge_invariant_quantities_to_1e6():
-    """Noise-free: gauge-invariant quantities to 1e-6.
+def test_noise_free_gauge_invariant_quantities(phong_reference_samples):
+    """Noise-free independent render: gauge-invariant quantities to 3 × the render tolerance.
 
     What the images determine — specular products f_l L_lm (l >= 1), diffuse products
-    kd Â_l L_lm and the total DC term — come back to 1e-6 relative; the scale is fixed by f_0 = 1.
+    kd Â_l L_lm and the total DC term — come back to ``3 rel_tol`` of the DC scale; the scale
+    is fixed by f_0 = 1. The data error is at most ``rel_tol · B`` per pixel plus the Phong
+    horizon clamp R&H's model ignores (small here: the lobe of s = 20 is ~13° wide); a
+    least-squares fit over well-spread directions carries it into the coefficients at about
+    the same relative size (measured 4e-4 of the DC scale at ``rel_tol = 1e-3``). Before
+    issue 13 the data came from ``render_sh`` and agreed to 1e-6 by construction.
     """
-    light, n, r, b = _data(0)
+    light, n, r, b = _data(phong_reference_samples)
+    spec, tol = phong_reference_samples["spec"], 3 * phong_reference_samples["rel_tol"]
     f = fit_bilinear(n, r, b, 6, brdf_lmax=6, rule="none")
     assert f.converged
     band = band_of_index(6)
@@ -39,24 +47,27 @@ def test_noise_free_gauge_invariant_quantities_to_1e6():
     spec_est = L * f.filter[band][:, None]
     spec_true = ks * light * phong_sh_filter(20.0, 6)[band][:, None]
     scale = spec_true[0].abs()
-    assert ((spec_est - spec_true)[1:].abs() / scale).max() < 1e-6
+    err_spec = ((spec_est - spec_true)[1:].abs() / scale).max()
     a = lambertian_filter(6)[band][:, None] / torch.pi
     dif_est = (L * a * f.kd)[1:]
-    dif_true = (light * a * SPEC.kd)[1:]
-    assert ((dif_est - dif_true).abs() / scale).max() < 1e-6
+    dif_true = (light * a * spec.kd)[1:]
+    err_dif = ((dif_est - dif_true).abs() / scale).max()
     dc_est = L[0] * (f.kd + 1.0)
-    dc_true = light[0] * (SPEC.kd + ks)
-    assert ((dc_est - dc_true).abs() / scale).max() < 1e-6
+    dc_true = light[0] * (spec.kd + ks)
+    err_dc = ((dc_est - dc_true).abs() / scale).max()
+    assert max(err_spec, err_dif, err_dc) < tol, (err_spec, err_dif, err_dc)
     assert float(f.filter[0]) == 1.0
+    # the test can fail: the specular part alone (f_0 L_00, not gauge invariant) is off by more
+    assert ((spec_est - spec_true)[0].abs() / scale).max() > tol
 
 
-def test_ambiguities_reported_not_hidden():
+def test_ambiguities_reported_not_hidden(phong_reference_samples):
     """Ambiguities are reported, not hidden.
 
     The exact ambiguities (odd bands >= 3 seen only as products; the diffuse/specular split of
     the DC term) are found as null directions, reported, and their coefficients flagged.
     """
-    light, n, r, b = _data(1, noise=1e-3)
+    light, n, r, b = _data(phong_reference_samples, seed=1, noise=1e-3)
     f = fit_bilinear(n, r, b, 6, brdf_lmax=6)
     res = f.to_results()
     names = [a["name"] for a in res["ambiguities"]]
@@ -75,8 +86,8 @@ def test_ambiguities_reported_not_hidden():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32])
-def test_float32_inputs_finite(dtype):
+def test_float32_inputs_finite(dtype, phong_reference_samples):
     """float32 inputs: computed in float64, finite results, converged."""
-    light, n, r, b = _data(2)
+    light, n, r, b = _data(phong_reference_samples)
     f = fit_bilinear(n.to(dtype), r.to(dtype), b.to(dtype), 4, brdf_lmax=4)
     assert torch.isfinite(f.lighting.coefficients).all() and torch.isfinite(f.kd).all()
