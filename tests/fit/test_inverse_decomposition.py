@@ -5,12 +5,14 @@ from __future__ import annotations
 import math
 
 import torch
-from brdfcap.fit.brdf_models import microfacet_sh_filter
+from brdfcap.capture.reference import LatLongProbe, render_environment, render_lights
+from brdfcap.fit.brdf_models import BRDFSpec, microfacet_sh_filter
 from brdfcap.fit.decomposition import (
     fit_decomposed_lighting,
     gaussian_lobe,
     microfacet_decomposition,
 )
+from brdfcap.fit.envmap import reconstruct_envmap
 from brdfcap.fit.sh import band_of_index, real_sh
 
 from brdfcap.testing import random_lighting, unit
@@ -46,23 +48,71 @@ def test_gaussian_lobe_vs_the_sh_filter_small_angle_error():
     assert errs[0] > errs[1] > errs[2]
 
 
-def test_decomposed_inverse_lighting_round_trip():
-    """Decomposed inverse lighting: noise-free round trip.
+def _near_normal_views(n, g, max_deg):
+    """View directions ``(N, 3)`` within ``max_deg`` of each normal (uniform in the cap)."""
+    t = unit(n.shape[0], g)
+    t = torch.nn.functional.normalize(t - (t * n).sum(-1, keepdim=True) * n, dim=-1)
+    ang = math.radians(max_deg) * torch.rand(n.shape[0], generator=g, dtype=torch.float64).sqrt()
+    return torch.cos(ang)[:, None] * n + torch.sin(ang)[:, None] * t
 
-    Slow SH lighting (l <= 4) and two bright sources of known direction recovered to 1e-6
-    from B_d + B_s,slow + B_s,fast (noise-free).
-    """
-    g = torch.Generator().manual_seed(1)
-    n, r = unit(4000, g), unit(4000, g)
+
+def _scene(seed=1, n_px=2000):
+    g = torch.Generator().manual_seed(seed)
+    n = unit(n_px, g)
     slow = random_lighting(4, g, dc=1.0, amp=0.2)
     dirs = torch.nn.functional.normalize(torch.tensor([[0.0, 0.2, 1.0], [0.8, -0.5, 0.1]],
                                                       dtype=torch.float64), dim=-1)
     power = torch.tensor([[3.0, 2.8, 2.5], [1.0, 1.5, 2.0]], dtype=torch.float64)
     kd = torch.tensor([0.3, 0.25, 0.2], dtype=torch.float64)
     f0 = torch.tensor([0.9, 0.9, 0.9], dtype=torch.float64)
+    return g, n, slow, dirs, power, kd, f0
+
+
+def test_decomposition_design_matches_its_forward_model():
+    """Exact identity (a documented exception, ``docs/simulator.md``): the fit's design matrix
+    and :func:`microfacet_decomposition` are the same linear model, so noise-free data made by
+    the latter are fitted to 1e-6. This checks the solver and the bookkeeping of slow bands and
+    sources, not the physics (see the reference-renderer test below for that).
+    """
+    g, _, slow, dirs, power, kd, f0 = _scene()
+    n, r = unit(4000, g), unit(4000, g)
     dec = microfacet_decomposition(n, r, slow, dirs, power, kd, f0, sigma=0.1)
     assert dec.specular_fast.abs().max() > dec.specular_slow.abs().max()  # sources dominate
     ls, es, sol, rows, ill = fit_decomposed_lighting(n, r, dec.total, dirs, 4, kd, f0, 0.1)
     assert (ls - slow).abs().max() < 1e-6
     assert (es - power).abs().max() < 1e-6
     assert ill is None
+
+
+def test_decomposed_inverse_lighting_on_the_reference_renderer():
+    """Decomposed inverse lighting of a Beckmann sphere rendered by the reference renderer.
+
+    Beckmann Cook–Torrance (σ = 0.1, F = F0 = 0.9 constant, Smith G, kd = 0.3/0.25/0.2) under
+    slow SH lighting (l ≤ 4, as a 48×96 cubic probe) plus two distant bright sources,
+    rendered by :mod:`brdfcap.capture.reference` (numerical integration to 2e-3, lights in
+    closed form; issue 13), views within 11.5° of the normal where R&H's decomposition (seed
+    eqs. 6-8) is meant to hold.
+    Its approximations set the tolerance: the Gaussian lobe drops ``1/(4 cosθo)`` (≤ 2 % here)
+    and carries energy ``1 − 4σ²/3`` (1.3 %); ``exp(−(σl)²)`` departs from Beckmann's filter by
+    a few % at l = 4. Measured: slow lighting within 1.1 % (l ≤ 3) and 3.7 % (l = 4) of its DC,
+    source powers within 1.4 %; asserted at about twice that. Fitting with the wrong roughness
+    (σ = 0.14) misses the sources by 74 %, so the comparison can fail.
+    """
+    g, n, slow, dirs, power, kd, f0 = _scene(seed=1, n_px=1500)
+    wo = _near_normal_views(n, g, 11.5)
+    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
+    spec = BRDFSpec("beckmann", kd=kd, f0=f0, sigma=0.1, extra={"fresnel": "none"})
+    b = render_environment(spec, n, wo, LatLongProbe(reconstruct_envmap(slow, 48, 96), "cubic"),
+                           rel_tol=2e-3)
+    for j in range(dirs.shape[0]):
+        b = b + render_lights(spec, n, wo, dirs[j].expand_as(n), power[j])
+    ls, es, _, _, ill = fit_decomposed_lighting(n, r, b, dirs, 4, kd, f0, 0.1)
+    band = band_of_index(4)
+    dc = slow[0].abs().max()
+    err_low = float((ls - slow)[band <= 3].abs().max() / dc)
+    err_4 = float((ls - slow)[band == 4].abs().max() / dc)
+    err_src = float(((es - power) / power).abs().max())
+    assert err_low < 0.025 and err_4 < 0.07 and err_src < 0.035, (err_low, err_4, err_src)
+    assert ill is None
+    _, es_wrong, _, _, _ = fit_decomposed_lighting(n, r, b, dirs, 4, kd, f0, 0.14)
+    assert float(((es_wrong - power) / power).abs().max()) > 0.035
