@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from brdfcap.fit.brdf.base import KD, BRDFModel, Parameter, orthonormal_basis
 from brdfcap.fit.brdf_models import (
     BRDFSpec,
     directional_albedo,
@@ -145,13 +146,6 @@ def test_sh_filter_with_a_light_probe_file(tmp_path):
     assert (fit.filter[:, 0] - phong_sh_filter(12.0, 6)).abs().max() < 1e-4
 
 
-def _view_dependent_transfer(ti, to, dp):
-    import numpy as np
-
-    return (0.2 + 0.3 * np.cos(ti) * np.cos(to) + 0.25 * np.sin(ti) * np.sin(to) * np.cos(dp)
-            ) * np.ones_like(ti) * np.ones_like(to) * np.ones_like(dp)
-
-
 def test_isotropic_rho_lpq_forward_matches_lambertian():
     """Isotropic forward model reproduces the Lambertian render.
 
@@ -174,29 +168,79 @@ def test_isotropic_rho_lpq_forward_matches_lambertian():
     assert (b - ref).abs().max() < 1e-5
 
 
-def test_isotropic_rho_lpq_round_trip_and_unexcited_bands():
-    """Isotropic ρ̂_lpq round trip; unexcited bands flagged.
+class _ViewDependent(BRDFModel):
+    """A smooth, view-dependent isotropic BRDF for the ρ̂_lpq round trip (not registered).
 
-    View-dependent isotropic BRDF: ρ̂_lpq recovered to 1e-6 (noise-free); with lighting only
-    up to l = 2 the bands l = 3, 4 are flagged (not excited).
+    Transfer ``max(cosθi, 0) · (0.2 + 0.3 cosθi cosθo + 0.2 sinθi sinθo cosΔφ)`` (≥ 0; degree
+    1 in ωo, so ``ρ̂_lpq = 0`` for p ≥ 2), with a cosine-weighted hemisphere sampler so that the
+    reference renderer integrates it by lobe quadrature.
     """
+
+    name = "test-view-dependent"
+    PARAMETERS = (KD, Parameter("ks", 1.0, (0.0, None), "1", True, "scale"))
+    scale_parameter = "ks"
+
+    def eval_specular_cos(self, normal, wi, wo):
+        ci = (normal * wi).sum(-1, keepdim=True)
+        co = (normal * wo).sum(-1, keepdim=True)
+        g = 0.2 + 0.3 * ci * co + 0.2 * ((wi * wo).sum(-1, keepdim=True) - ci * co)
+        return self._c("ks", normal) * ci.clamp_min(0.0) * g
+
+    def sample_specular(self, normal, wo, u):
+        t, b = orthonormal_basis(normal)
+        c = u[..., 0].sqrt()
+        s = (1.0 - c * c).clamp_min(0.0).sqrt()
+        ph = 2.0 * math.pi * u[..., 1]
+        wi = ((s * torch.cos(ph))[..., None] * t[:, None] + (s * torch.sin(ph))[..., None]
+              * b[:, None] + c[..., None] * normal[:, None])
+        return wi, c / math.pi
+
+
+def _view_dependent_clamped(ti, to, dp):
+    import numpy as np
+
+    return np.maximum(np.cos(ti), 0.0) * (0.2 + 0.3 * np.cos(ti) * np.cos(to)
+                                          + 0.2 * np.sin(ti) * np.sin(to) * np.cos(dp))
+
+
+@pytest.mark.slow
+def test_isotropic_rho_lpq_round_trip_and_unexcited_bands():
+    """Isotropic ρ̂_lpq round trip on the reference renderer; unexcited bands flagged.
+
+    A view-dependent isotropic BRDF (:class:`_ViewDependent`) under SH lighting to l = 3,
+    rendered by :func:`brdfcap.capture.reference.render_environment` (lobe quadrature of its
+    point evaluation to ``rel_tol = 1e-4``, the lighting as a 64×128 cubic probe; issue 13),
+    not by the design the fit inverts. Truth: ρ̂_lpq of the same transfer by
+    :func:`brdfcap.fit.filters.isotropic_brdf_coeffs` (R&H 2001 eq. 16). The light is
+    band-limited, so the radiance is exactly the l ≤ 3 expansion; the render's error, amplified
+    by the conditioning of the rotated-frame design (weakest at l = 3), is what is left:
+    measured ≤ 8e-3 of the largest ρ̂ (1.3e-1 at ``rel_tol = 1e-3``, so the test can fail),
+    asserted 2e-2. With the fit told the lighting stops at l = 2, bands 3 are flagged (not
+    excited). ~35 s on one loaded core: slow.
+    """
+    from brdfcap.capture.reference import LatLongProbe, render_environment
+    from brdfcap.fit.envmap import reconstruct_envmap
     from brdfcap.fit.filters import isotropic_brdf_coeffs
     from brdfcap.fit.inverse_brdf import fit_brdf_isotropic, isotropic_design
 
     g = torch.Generator().manual_seed(6)
-    n = unit(3000, g)
-    wo = torch.nn.functional.normalize(n + 0.7 * unit(3000, g), dim=-1)
+    n = unit(1500, g)
+    wo = torch.nn.functional.normalize(n + 0.7 * unit(1500, g), dim=-1)
     light = random_lighting(3, g, dc=1.0, amp=0.3)
-    rho = isotropic_brdf_coeffs(_view_dependent_transfer, 3)
-    a, idx = isotropic_design(n, wo, light, 3, 3)
-    b = torch.einsum("ncj,j->nc", a, torch.stack([rho[l, p, k] for l, p, k in idx]))
+    b = render_environment(_ViewDependent(kd=[0.0] * 3, ks=[1.0] * 3), n, wo,
+                           LatLongProbe(reconstruct_envmap(light, 64, 128), "cubic"),
+                           rel_tol=1e-4)
+    rho = isotropic_brdf_coeffs(_view_dependent_clamped, 3, n_theta=1024)
     fit = fit_brdf_isotropic(n, wo, b, light, 3, rule="none")
     scale = float(rho.abs().max())
-    for l, p, k in idx:
-        assert (fit["coefficients"][l, p, k] - rho[l, p, k]).abs().max() < 1e-6 * scale
+    _, idx = isotropic_design(n, wo, light, 3, 3)
+    err = max(float((fit["coefficients"][l, p, k] - rho[l, p, k]).abs().max())
+              for l, p, k in idx) / scale
+    assert err < 2e-2, err
     low = torch.zeros(16, 3, dtype=torch.float64)
     low[:9] = light[:9]
-    b2 = torch.einsum("ncj,j->nc", isotropic_design(n, wo, low, 3, 3)[0],
-                      torch.stack([rho[l, p, k] for l, p, k in idx]))
-    fit2 = fit_brdf_isotropic(n, wo, b2, low, 3)
+    b2 = render_environment(_ViewDependent(kd=[0.0] * 3, ks=[1.0] * 3), n[:600], wo[:600],
+                            LatLongProbe(reconstruct_envmap(low, 32, 64), "cubic"),
+                            rel_tol=1e-3)
+    fit2 = fit_brdf_isotropic(n[:600], wo[:600], b2, low, 3)
     assert fit2["ill_conditioned_from_l"] == 3
