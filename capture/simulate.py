@@ -59,7 +59,8 @@ SCENE_KEYS = {
     "geometry": {"shape", "radius", "mesh", "units"},
     "material": {"model", "albedo", "known"},
     "lighting": {"kind", "sh", "coefficients", "probe", "probe_lmax", "known", "lights",
-                 "rotation_deg"},
+                 "rotation_deg", "probes"},
+    "probes": {"file", "weight", "rotation_deg"},
     "lights": {"direction", "radiance", "position", "intensity"},
     "camera": {"model", "width", "height", "fov_deg", "fx", "fy", "cx", "cy", "pixel_size"},
     "views": {"count", "distance", "elevation_deg"},
@@ -97,6 +98,10 @@ class Scene:
     renderer_exact: bool = True
     render: dict = field(default_factory=dict)  # [render] options, defaults filled in
     probe: np.ndarray | None = None  # (H, W, 3) lat-long radiance (lighting.probe), un-rotated
+    #: every probe of the environment (``lighting.probe`` or ``[[lighting.probes]]``): dicts with
+    #: ``image`` (H, W, 3) un-rotated, ``weight`` (3,), ``rotation`` (3, 3) or None (the whole
+    #: rotation, ``lighting.rotation_deg`` included), ``file``, ``rotation_deg``, ``sh``
+    probes: list[dict] = field(default_factory=list)
     rotation: np.ndarray | None = None  # (3, 3) probe/SH rotation (a light at d goes to R d)
     sources: list[dict] = field(default_factory=list)  # bright lights added to an environment
     warnings: list[str] = field(default_factory=list)
@@ -170,7 +175,7 @@ def _material(mat: dict, path: Path, out: list[str]) -> BRDFSpec:
                     extra={k: v for k, v in kw.items() if k not in fields_})
 
 
-def _rotation(light: dict, path: Path) -> np.ndarray | None:
+def _rotation(light: dict, path: Path, where: str = "lighting.") -> np.ndarray | None:
     """``lighting.rotation_deg = [rx, ry, rz]``: rotate about world x, then y, then z."""
     if "rotation_deg" not in light:
         return None
@@ -178,12 +183,71 @@ def _rotation(light: dict, path: Path) -> np.ndarray | None:
     if isinstance(r, (int, float)):
         r = [0.0, 0.0, float(r)]
     if not (isinstance(r, list) and len(r) == 3):
-        raise CaptureError("scene key 'lighting.rotation_deg' must be [rx, ry, rz] degrees (or "
+        raise CaptureError(f"scene key '{where}rotation_deg' must be [rx, ry, rz] degrees (or "
                            "one number: about +z)", path)
     m = torch.eye(3, dtype=torch.float64)
     for axis, ang in zip(((1, 0, 0), (0, 1, 0), (0, 0, 1)), r):
         m = rotation_matrix(axis, math.radians(float(ang))) @ m
     return m.numpy()
+
+
+def _read_probe(path: Path, file: str, where: str) -> torch.Tensor:
+    """Read a lat-long probe ``(H, W, 3)`` float64 named in the scene (relative to it)."""
+    from brdfcap.capture import probes as envmap  # file I/O moved out of fit/
+
+    if not isinstance(file, str) or not file:
+        raise CaptureError(f"scene key '{where}' must name a lat-long HDR/EXR probe file", path)
+    p = path.parent / file
+    if not p.is_file():
+        raise CaptureError(f"scene key '{where}': probe file {str(p)!r} not found (paths are "
+                           "relative to the scene file)", path)
+    return envmap.read_envmap(p)[..., :3].double()
+
+
+def _probe_sh(img: torch.Tensor, lmax: int, weight: np.ndarray,
+              rot: np.ndarray | None) -> np.ndarray:
+    """``weight ·`` the SH projection of a probe (to ``lmax``), rotated by ``rot``."""
+    from brdfcap.fit.envmap import project_envmap
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sh = project_envmap(img, lmax)
+    if rot is not None:
+        sh = rotate_sh(sh, torch.as_tensor(rot))
+    return sh.numpy() * weight[None, :]
+
+
+def _probes(light: dict, path: Path, rot: np.ndarray | None, lmax: int,
+            notes: list[str]) -> list[dict]:
+    """``[[lighting.probes]]``: several probes, each with a weight and a rotation, summed.
+
+    Each rotation (``rotation_deg`` of the entry) is applied first, then the lighting's own
+    ``lighting.rotation_deg``. ``sh`` of each entry is its weighted, rotated SH to ``lmax``.
+    """
+    entries = light["probes"]
+    if not isinstance(entries, list) or not entries:
+        raise CaptureError("scene key 'lighting.probes' must be a non-empty array of tables "
+                           "([[lighting.probes]] with file, weight, rotation_deg)", path)
+    out = []
+    for i, ent in enumerate(entries):
+        where = f"lighting.probes[{i}]."
+        if not isinstance(ent, dict):
+            raise CaptureError(f"scene key '{where[:-1]}' must be a table (file = ..., "
+                               "weight = ..., rotation_deg = ...)", path)
+        _warn_unknown(ent, "probes", where, notes)
+        img = _read_probe(path, ent.get("file", ""), where + "file")
+        w = np.asarray(ent.get("weight", 1.0), dtype=np.float64).reshape(-1)
+        if w.size == 1:
+            w = np.repeat(w, 3)
+        if w.size != 3 or not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise CaptureError(f"scene key '{where}weight' must be one number or [r, g, b], "
+                               f">= 0; got {ent.get('weight')!r}", path)
+        own = _rotation(ent, path, where)
+        total = own if rot is None else (rot if own is None else rot @ own)
+        out.append({"image": img.numpy(), "weight": w, "rotation": total,
+                    "file": str(ent["file"]), "rotation_deg": ent.get("rotation_deg"),
+                    "sh": _probe_sh(img, lmax, w, total)})
+    return out
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -215,22 +279,27 @@ def load_scene(path: str | Path) -> Scene:
     light = doc.get("lighting", {})
     _warn_unknown(light, "lighting", "lighting.", notes)
     kind = light.get("kind", "environment")
-    light_sh, lights, probe, sources = None, [], None, []
+    light_sh, lights, probe, sources, probes = None, [], None, [], []
     rot = _rotation(light, path)
     for i, lt in enumerate(light.get("lights", [])):
         _warn_unknown(lt, "lights", f"lighting.lights[{i}].", notes)
     if kind == "environment":
+        if "probes" in light and ("probe" in light or "coefficients" in light):
+            raise CaptureError("scene [lighting]: give either probe, coefficients or "
+                               "[[lighting.probes]], not several", path)
         if "coefficients" in light:
             light_sh = np.asarray(light["coefficients"], dtype=np.float64)
-        elif "probe" in light:
-            from brdfcap.capture import probes as envmap  # file I/O moved out of fit/
-
+        elif "probe" in light or "probes" in light:
             lmax = int(light.get("probe_lmax", 8))
-            img = envmap.read_envmap(path.parent / light["probe"])[..., :3].double()
-            probe = img.numpy()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                light_sh = envmap.project_envmap(img, lmax).numpy()
+            if "probe" in light:
+                img = _read_probe(path, light["probe"], "lighting.probe")
+                probe = img.numpy()
+                probes = [{"image": probe, "weight": np.ones(3), "rotation": rot,
+                           "file": str(light["probe"]), "rotation_deg": None,
+                           "sh": _probe_sh(img, lmax, np.ones(3), rot)}]
+            else:
+                probes = _probes(light, path, rot, lmax, notes)
+            light_sh = sum(p_["sh"] for p_ in probes)  # the SH of the sum, rotations applied
         else:
             name = light.get("sh", "grace-rh2001")
             if name not in SH_PRESETS:
@@ -241,7 +310,7 @@ def load_scene(path: str | Path) -> Scene:
         if light_sh.ndim != 2 or light_sh.shape[1] != 3 or int(math.isqrt(k)) ** 2 != k:
             raise CaptureError("scene lighting coefficients must be (lmax+1)^2 rows of [r,g,b]",
                                path)
-        if rot is not None:
+        if rot is not None and not probes:  # probes: rotated above, each with its own
             light_sh = rotate_sh(torch.as_tensor(light_sh), torch.as_tensor(rot)).numpy()
         sources = list(light.get("lights", []))  # bright sources on top of the environment
     elif kind == "directional":
@@ -264,7 +333,7 @@ def load_scene(path: str | Path) -> Scene:
                            relative=float(nt.get("relative", 0.0)))
     _warn_unknown(doc.get("simulation", {}), "simulation", "simulation.", notes)
     # renderer: SH only by default where it is exact (Lambertian, band-limited SH lighting)
-    exact_sh = (kind == "environment" and brdf.model == "lambertian" and probe is None
+    exact_sh = (kind == "environment" and brdf.model == "lambertian" and not probes
                 and not sources)
     renderer = doc.get("renderer", "sh" if exact_sh else "reference")
     if renderer not in RENDERERS:
@@ -283,7 +352,7 @@ def load_scene(path: str | Path) -> Scene:
               "max_samples": int(rt.get("max_samples", 1 << 14)),
               "seed": int(rt.get("seed", 0)),
               "probe_interpolation": str(rt.get("probe_interpolation",
-                                                "bilinear" if probe is not None else "cubic")),
+                                                "bilinear" if probes else "cubic")),
               "sh_probe_height": int(rt.get("sh_probe_height", 0))}
     if not (render["rel_tol"] > 0 and render["spp"] >= 1 and render["max_samples"] >= 16):
         raise CaptureError("scene [render]: need rel_tol > 0, spp >= 1, max_samples >= 16",
@@ -304,6 +373,7 @@ def load_scene(path: str | Path) -> Scene:
         saturation=None if "saturation" not in doc else float(doc["saturation"]),
         source=path, raw=doc, brdf=brdf, renderer=renderer,
         renderer_exact=renderer == "reference" or exact_sh, render=render, probe=probe,
+        probes=probes,
         rotation=rot, sources=sources, warnings=notes)
 
 
@@ -408,22 +478,25 @@ class _Renderer:
         self.scene = scene
         self.model = scene.brdf.brdf
         self.probe = None
+        #: ``(LatLongProbe, weight (3,))`` per probe; the environment is their weighted sum
+        self.probes: list[tuple[LatLongProbe, torch.Tensor]] = []
         self.info: list[dict] = []
         if scene.lighting_kind == "environment" and scene.renderer == "reference":
             interp = scene.render["probe_interpolation"]
-            if scene.probe is not None:
-                img = torch.as_tensor(scene.probe)
-            else:  # SH lighting as a smooth probe: cubic interpolation reproduces it to O(h³)
+            for p_ in scene.probes:
+                rot = None if p_["rotation"] is None else torch.as_tensor(p_["rotation"])
+                self.probes.append((LatLongProbe(torch.as_tensor(p_["image"]), interp, rot),
+                                    torch.as_tensor(p_["weight"], dtype=torch.float64)))
+            if not scene.probes:  # SH lighting as a smooth probe: cubic reproduces it to O(h³)
                 lmax = math.isqrt(scene.light_sh.shape[0]) - 1
                 h = scene.render["sh_probe_height"] or max(32, 8 * (lmax + 1))
                 from brdfcap.fit.envmap import reconstruct_envmap
 
                 img = reconstruct_envmap(torch.as_tensor(scene.light_sh), h, 2 * h)
                 self.sh_probe_shape = (h, 2 * h)
-            rot = None
-            if scene.rotation is not None and scene.probe is not None:
-                rot = torch.as_tensor(scene.rotation)
-            self.probe = LatLongProbe(img, interp, rot)
+                self.probes.append((LatLongProbe(img, interp, None),
+                                    torch.ones(3, dtype=torch.float64)))
+            self.probe = self.probes[0][0]
 
     def environment(self, nrm: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         sc = self.scene
@@ -434,11 +507,14 @@ class _Renderer:
             refl = 2.0 * (nrm * wo).sum(-1, keepdim=True) * nrm - wo
             return render_sh(sc.brdf, nrm, refl, torch.as_tensor(sc.light_sh))
         r = sc.render
-        b, info = render_environment(self.model, nrm, wo, self.probe, rel_tol=r["rel_tol"],
-                                     max_samples=r["max_samples"], seed=r["seed"],
-                                     return_info=True)
-        self.info.append(info)
-        return b
+        out = 0.0
+        for probe, weight in self.probes:   # the render is linear in the lighting
+            b, info = render_environment(self.model, nrm, wo, probe, rel_tol=r["rel_tol"],
+                                         max_samples=r["max_samples"], seed=r["seed"],
+                                         return_info=True)
+            self.info.append(info)
+            out = out + b * weight
+        return out
 
     def light(self, nrm, wo, wi, irr) -> torch.Tensor:
         return render_lights(self.model, nrm, wo, wi, irr)
@@ -507,7 +583,10 @@ def _renderer_record(scene: Scene, renderer: _Renderer) -> dict:
     if renderer.probe is not None:
         rec["probe"] = {"shape": list(renderer.probe.image.shape[:2]),
                         "interpolation": renderer.probe.interpolation,
-                        "source": "file" if scene.probe is not None else "SH reconstruction"}
+                        "source": "file" if scene.probes else "SH reconstruction"}
+        if len(renderer.probes) > 1:
+            rec["probe"]["count"] = len(renderer.probes)
+            rec["probe"]["shapes"] = [list(p_.image.shape[:2]) for p_, _ in renderer.probes]
     terms: dict = {}
     for info in renderer.info:
         for name, t in info["terms"].items():
@@ -536,7 +615,9 @@ def _effects(scene: Scene, cast_shadows: bool) -> list[str]:
             out.append("horizon-clamp")
     if scene.sources:
         out.append(f"sources:{len(scene.sources)}")
-    if scene.rotation is not None:
+    if len(scene.probes) > 1:
+        out.append(f"probes:{len(scene.probes)}")
+    if scene.rotation is not None or any(p_["rotation"] is not None for p_ in scene.probes):
         out.append("probe-rotation")
     if scene.render.get("spp", 1) > 1:
         out.append(f"antialiasing:{scene.render['spp']}spp")
@@ -555,15 +636,19 @@ def _lighting_truth(scene: Scene) -> dict:
     rec = {"lmax": lmax, "sh": "rh2001-real", "frame": "world",
            "coefficients": scene.light_sh.tolist()}
     k_hi = (HIGH_LMAX + 1) ** 2
-    if scene.probe is not None:
-        from brdfcap.fit.envmap import project_envmap
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            hi = project_envmap(torch.as_tensor(scene.probe), HIGH_LMAX)
-        if scene.rotation is not None:
-            hi = rotate_sh(hi, torch.as_tensor(scene.rotation))
+    if scene.probes:
+        hi = torch.as_tensor(sum(_probe_sh(torch.as_tensor(p_["image"]), HIGH_LMAX,
+                                           p_["weight"], p_["rotation"])
+                                 for p_ in scene.probes))
         how = "probe projected with Fejer quadrature (fit.envmap.project_envmap)"
+        if len(scene.probes) > 1:
+            how = ("sum of the probes, each projected with Fejer quadrature "
+                   "(fit.envmap.project_envmap), rotated and weighted")
+            rec["probes"] = [{"file": p_["file"], "weight": p_["weight"].tolist(),
+                              "rotation_deg": p_["rotation_deg"],
+                              "rotation": None if p_["rotation"] is None
+                              else np.asarray(p_["rotation"]).tolist(),
+                              "coefficients": p_["sh"].tolist()} for p_ in scene.probes]
     else:
         hi = torch.zeros(k_hi, 3, dtype=torch.float64)
         hi[: scene.light_sh.shape[0]] = torch.as_tensor(scene.light_sh)
