@@ -399,6 +399,11 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     signed incidence angle (positive: ωi on the far side of the normal, i.e. toward the mirror
     direction). Polar: the reflected-radiance lobe ``f(ωi, ωo) cosθi`` for a unit light, per
     ``θo``, green channel.
+
+    Every registered model is drawn through its point evaluation (``brdf_value``, the
+    registry's ``eval``). A Dirac lobe (``delta`` models: mirror) has no finite value: it is
+    drawn as an arrow at the mirror angle ``θi = θo`` in the slices, and as a spoke of length
+    ``k_s`` (the weight of the δ) in the polar plot, beside the finite (diffuse) part.
     """
     import torch
     from brdfcap.fit.brdf_models import brdf_value
@@ -406,6 +411,8 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     ti = np.radians(np.linspace(-89.0, 89.0, 357))
     n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(ti), 3)
     wi = torch.as_tensor(np.stack([-np.sin(ti), np.zeros_like(ti), np.cos(ti)], -1))
+    m = spec.brdf
+    delta = m._c(m.scale_parameter, n).numpy() if m.delta and m.has_specular else None
     fig = plt.figure(figsize=(10.0, 3.8))
     ax1 = fig.add_subplot(1, 2, 1)
     ax2 = fig.add_subplot(1, 2, 2, projection="polar")
@@ -420,9 +427,20 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
                      label=f"θo = {to:g}°" if c == 1 else None)
         g = f[:, min(1, f.shape[1] - 1)] * np.cos(ti)
         ax2.plot(ti, g, styles[j % 4], color="k", lw=1, label=f"θo = {to:g}°")
+        if delta is not None:   # Dirac lobe at the mirror angle, weight k_s
+            ax1.annotate("", xy=(to, 0.97), xycoords=("data", "axes fraction"),
+                         xytext=(to, 0.0), textcoords=("data", "axes fraction"),
+                         arrowprops={"arrowstyle": "-|>", "color": "k", "lw": 1,
+                                     "ls": styles[j % 4]}, gid=f"delta-{to:g}")
+            ax2.plot([t, t], [0.0, delta[min(1, len(delta) - 1)]], styles[j % 4], color="k",
+                     lw=2.0, gid=f"delta-{to:g}")
     ax1.set_xlabel("θi (deg, signed; + = toward the mirror direction)", fontsize=8)
     ax1.set_ylabel("f(ωi, ωo)  [1/sr]", fontsize=8)
-    ax1.set_title(f"BRDF slices in the plane of incidence ({spec.model}; R, G, B)", fontsize=9)
+    title = f"BRDF slices in the plane of incidence ({spec.model}; R, G, B)"
+    if delta is not None:
+        title += "\narrows: Dirac lobe at θi = θo, weight k_s = " + ", ".join(
+            f"{x:.3g}" for x in delta)
+    ax1.set_title(title, fontsize=9)
     ax1.tick_params(labelsize=7)
     top = max((ln.get_ydata().max() for ln in ax1.get_lines() if len(ln.get_ydata())),
               default=1.0)
