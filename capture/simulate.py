@@ -41,7 +41,8 @@ from brdfcap.fit.rotation import rotate_sh, rotation_matrix
 from brdfcap.core.errors import CaptureError
 
 from .images import write_image
-from .reference import LatLongProbe, render_environment, render_lights
+from .interreflection import DEFAULT_DIRECTIONS, indirect_radiance
+from .reference import LatLongProbe, irradiance_quadrature, render_environment, render_lights
 from .types import CameraModel, NoiseModel
 
 __all__ = ["Scene", "load_scene", "simulate", "look_at", "builtin_scene_path", "view_poses",
@@ -67,7 +68,7 @@ SCENE_KEYS = {
     "noise": {"read", "gain", "relative", "seed"},
     "render": {"rel_tol", "spp", "max_samples", "seed", "probe_interpolation",
                "sh_probe_height"},
-    "simulation": {"shadows"},
+    "simulation": {"shadows", "interreflection", "interreflection_directions"},
 }
 
 
@@ -519,14 +520,62 @@ class _Renderer:
     def light(self, nrm, wo, wi, irr) -> torch.Tensor:
         return render_lights(self.model, nrm, wo, wi, irr)
 
+    def environment_radiance(self, dirs: np.ndarray) -> np.ndarray:
+        """Environment radiance ``(M, 3)`` arriving from world directions ``dirs`` ``(M, 3)``."""
+        d = torch.as_tensor(dirs, dtype=torch.float64)
+        if not self.probes:   # SH renderer: the SH lighting itself
+            from brdfcap.fit.sh import real_sh
+
+            sh = torch.as_tensor(self.scene.light_sh)
+            return (real_sh(d, math.isqrt(sh.shape[0]) - 1) @ sh).numpy()
+        return sum(p_.radiance(d) * w for p_, w in self.probes).numpy()
+
+    def environment_irradiance(self, nrm: np.ndarray) -> np.ndarray:
+        """Unoccluded environment irradiance ``(M, 3)`` on surfaces of normal ``nrm``."""
+        n = torch.as_tensor(nrm, dtype=torch.float64)
+        if not self.probes:   # R&H 2001 eq. 13 (exact for band-limited SH lighting)
+            one = torch.ones(3, dtype=torch.float64)
+            return math.pi * lambertian_radiance_sh(n, torch.as_tensor(self.scene.light_sh),
+                                                    one).numpy()
+        return sum(irradiance_quadrature(n, p_, 2) * w for p_, w in self.probes).numpy()
+
+
+def _one_bounce(scene: Scene, renderer: _Renderer, scene_rc, mesh, light: dict | None,
+                cast_shadows: bool):
+    """``(q, n_q) -> kd/π · E_direct(q)``: Lambertian radiance a hit point reflects (one bounce)."""
+    from brdfcap.reconstruct.geometry import light_at
+    from brdfcap.reconstruct.shadows import shadow_mask
+
+    kd = scene.albedo[None, :] / math.pi
+
+    def direct(lt, q, nq, shadows):
+        wi, irr, dist = light_at(_scene_light(lt), q)
+        e = irr * np.clip(np.einsum("ij,ij->i", nq, wi), 0, None)[:, None]
+        if shadows:
+            e[shadow_mask(scene_rc, q, nq, wi, mesh.extent, light_distance=dist)] = 0.0
+        return e
+
+    def radiance(q, nq):
+        if scene.lighting_kind == "environment":
+            e = renderer.environment_irradiance(nq)
+            for src in scene.sources:
+                e = e + direct(src, q, nq, False)
+        else:
+            e = direct(light, q, nq, cast_shadows)
+        return kd * e
+
+    return radiance
+
 
 def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | None,
-                 cast_shadows: bool = False, renderer: _Renderer | None = None):
+                 cast_shadows: bool = False, renderer: _Renderer | None = None,
+                 interreflection: dict | None = None):
     """Render one view; returns ``(image, n_shadowed_pixels)``.
 
     Each pixel averages ``[render] spp`` rays (:func:`pixel_offsets`); a ray that misses the
     object sees black. Shadow rays are cast only when ``cast_shadows`` (a non-convex mesh under
-    a known light).
+    a known light); one-bounce interreflection (:mod:`brdfcap.capture.interreflection`) only
+    when ``interreflection`` is given (its statistics are accumulated there).
     """
     from brdfcap.reconstruct.camera import camera_rays
     from brdfcap.reconstruct.geometry import add_lighting, cast_view, light_at
@@ -569,6 +618,20 @@ def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | N
             wi_np, irr_np, _ = light_at(_scene_light(light), p[lit])
             rad = renderer.light(nrm, wo, torch.as_tensor(wi_np), torch.as_tensor(irr_np))
         img[lit] += rad.numpy() / spp
+        if interreflection is not None and hit.any():
+            env = (renderer.environment_radiance if scene.lighting_kind == "environment"
+                   else None)
+            d, st = indirect_radiance(
+                renderer.model, p[hit], normal[hit], g.geometric_normal[hit], wo_img[hit],
+                scene_rc, mesh, _one_bounce(scene, renderer, scene_rc, mesh, light,
+                                            cast_shadows),
+                environment=env, directions=interreflection["directions"])
+            img[hit] += d / spp
+            interreflection["rays"] += st["rays"]
+            interreflection["max_added"] = max(interreflection["max_added"],
+                                               float(d.max(initial=0.0)))
+            interreflection["min_added"] = min(interreflection["min_added"],
+                                               float(d.min(initial=0.0)))
     return img, int(round(n_shadow))
 
 
@@ -660,6 +723,32 @@ def _lighting_truth(scene: Scene) -> dict:
     return rec
 
 
+def _interreflection_policy(scene: Scene, mesh) -> tuple[dict | None, str]:
+    """Decide ``[simulation] interreflection``: ``(accumulator or None, decision)``."""
+    sim = scene.raw.get("simulation", {})
+    want = sim.get("interreflection", False)
+    if not isinstance(want, bool):
+        raise CaptureError("scene key 'simulation.interreflection' must be true or false, got "
+                           f"{want!r}", scene.source)
+    dirs = sim.get("interreflection_directions", list(DEFAULT_DIRECTIONS))
+    if not (isinstance(dirs, list) and len(dirs) == 2
+            and all(isinstance(x, int) and 2 <= x <= 256 for x in dirs)):
+        raise CaptureError("scene key 'simulation.interreflection_directions' must be "
+                           "[n_theta, n_phi], integers in 2..256", scene.source)
+    if not want:
+        return None, "off (scene does not ask for it: [simulation] interreflection = true)"
+    if scene.shape == "sphere":
+        return None, "sphere: convex, cannot see itself; no interreflection"
+    from brdfcap.reconstruct.shadows import shadow_policy
+
+    if shadow_policy(mesh, "auto").convexity.convex:
+        return None, "mesh is convex: it cannot see itself; no interreflection"
+    return ({"directions": [int(x) for x in dirs], "rays": 0, "max_added": 0.0,
+             "min_added": 0.0},
+            "one bounce: Lambertian radiance of the hit points from their direct lighting "
+            "(brdfcap.capture.interreflection)")
+
+
 def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     """Render a scene to a capture directory (``capture.toml``, images, mesh, ground truth).
 
@@ -702,12 +791,13 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         pol = shadow_policy(mesh, str(scene.raw.get("simulation", {}).get("shadows", "auto")))
         cast_shadows, shadow_note = pol.cast, pol.reason
     n_shadowed = 0
+    inter, inter_note = _interreflection_policy(scene, mesh)
     from .raw_synth import RawCaptureWriter
 
     raw_writer = RawCaptureWriter.from_scene(scene.raw, out, scene.source)  # None: EXRs
     for i, pose in enumerate(poses):
         light = scene.lights[i % len(scene.lights)] if scene.lights else None
-        img, ns = _render_view(scene, mesh, rc, pose, light, cast_shadows, renderer)
+        img, ns = _render_view(scene, mesh, rc, pose, light, cast_shadows, renderer, inter)
         n_shadowed += ns
         img = img * scene.exposure
         if raw_writer is not None:  # [camera_raw]: raw DNGs through the inverse raw chain
@@ -730,6 +820,8 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
                               "radiance": np.asarray(light.get("radiance", [1, 1, 1]), float)}
         images.append(entry)
     effects = _effects(scene, cast_shadows)
+    if inter is not None:
+        effects.append("interreflection:1-bounce")
     cam = scene.camera
     cam_tab = {"model": cam.model, "width": cam.width, "height": cam.height}
     if cam.model == "pinhole":
@@ -768,6 +860,8 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
              "albedo": scene.albedo.tolist(), "lighting_kind": scene.lighting_kind,
              "shadows": {"cast": cast_shadows, "decision": shadow_note,
                          "shadowed_pixels": n_shadowed},
+             "interreflection": {"applied": inter is not None, "decision": inter_note,
+                                 **(inter or {})},
              "renderer": _renderer_record(scene, renderer),
              "views": {"target": centre.tolist(), "distance": scene.distance}}
     if scene.warnings:
