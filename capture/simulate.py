@@ -2,9 +2,12 @@
 
 The simulator renders exactly the effects a scene asks for and records them in
 ``ground_truth.json``: pixel noise only when ``[noise]`` is present, clipping only when
-``saturation`` is set, shadow rays only for a non-convex mesh under a light, the BRDF's own
-Fresnel and masking terms. Scene format: ``docs/capture-format.md#scene-files``; renderers:
-``docs/simulator.md``.
+``saturation`` is set, shadow rays only for a non-convex mesh under a light, one-bounce
+inter-reflection only when ``[simulation] interreflection = true`` (and the mesh is not convex;
+:mod:`brdfcap.capture.interreflection`), the BRDF's own Fresnel and masking terms. An
+environment may be one probe, SH lighting, or several probes (``[[lighting.probes]]``, each
+with a weight and a rotation, summed). Scene format: ``docs/capture-format.md#scene-files``;
+renderers and these features: ``docs/simulator.md``.
 
 Renderers (scene key ``renderer``):
 

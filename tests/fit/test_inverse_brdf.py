@@ -151,6 +151,8 @@ def test_isotropic_rho_lpq_forward_matches_lambertian():
 
     ρ̂_lpq of the clamped cosine (fit.filters quadrature) through the rotated-frame design
     reproduces the Lambertian SH render (R&H 2001 eqs. 8 and 16-17) to quadrature accuracy.
+    An exact identity between two SH-domain code paths, no fit (a documented exception,
+    ``docs/simulator.md``).
     """
     import numpy as np
     from brdfcap.fit.filters import isotropic_brdf_coeffs

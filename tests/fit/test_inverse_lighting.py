@@ -2,6 +2,10 @@
 
 Samples are synthetic (random normals / reflected directions, radiance from
 :func:`brdfcap.fit.brdf_models.render_sh`), so the tests isolate the solver from rendering.
+Exact for the Lambertian and mirror cases under band-limited lighting; the Phong and microfacet
+cases are listed in ``docs/simulator.md`` as still on the SH forward model (their accuracy on
+independent data: ``test_inverse_brdf.py::test_sh_filter_round_trip_phong``,
+``test_uncertainty_truth.py``).
 """
 
 from __future__ import annotations
