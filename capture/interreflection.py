@@ -39,6 +39,7 @@ __all__ = ["hemisphere_rule", "indirect_radiance", "DEFAULT_DIRECTIONS"]
 
 #: Default ``(n_theta, n_phi)`` of the hemisphere rule.
 DEFAULT_DIRECTIONS = (32, 64)
+_CHUNK_RAYS = 1 << 18    # rays cast per batch (each ~100 bytes of working memory)
 
 
 def hemisphere_rule(n_theta: int, n_phi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -64,8 +65,8 @@ def hemisphere_rule(n_theta: int, n_phi: int) -> tuple[np.ndarray, np.ndarray, n
 def indirect_radiance(model, position: np.ndarray, normal: np.ndarray,
                       geometric_normal: np.ndarray, wo: np.ndarray, scene_rc, mesh,
                       hit_radiance, environment=None,
-                      directions: tuple[int, int] = DEFAULT_DIRECTIONS,
-                      offset_rel: float = 1e-5) -> tuple[np.ndarray, dict]:
+                      directions: tuple[int, int] = DEFAULT_DIRECTIONS
+                      ) -> tuple[np.ndarray, dict]:
     """One-bounce change of the reflected radiance ``(N, C)`` at surface points (module doc).
 
     Parameters
@@ -86,14 +87,29 @@ def indirect_radiance(model, position: np.ndarray, normal: np.ndarray,
     Returns
     -------
     delta, stats
-        ``(N, C)`` radiance to add, and ``{"rays", "hit_fraction", "directions"}``.
+        ``(N, 3)`` RGB radiance to add, and ``{"rays", "hit_fraction", "directions"}``.
     """
     n_pix = position.shape[0]
-    c = int(model.kd.numel())
-    if n_pix == 0:
-        return np.zeros((0, c)), {"rays": 0, "hit_fraction": 0.0}
+    c = 3   # RGB, as the simulator renders
     local, pdf, weight = hemisphere_rule(*directions)
     s = local.shape[0]
+    step = max(1, _CHUNK_RAYS // s)
+    delta = np.zeros((n_pix, c))
+    n_hit = 0
+    for a in range(0, n_pix, step):   # bounded memory: ~_CHUNK_RAYS rays at a time
+        sl = slice(a, min(n_pix, a + step))
+        delta[sl], h = _chunk(model, position[sl], normal[sl], geometric_normal[sl], wo[sl],
+                              scene_rc, mesh, hit_radiance, environment, local, pdf, weight)
+        n_hit += h
+    stats = {"rays": int(n_pix * s), "hit_fraction": n_hit / max(1, n_pix * s),
+             "directions": [int(d) for d in directions]}
+    return delta, stats
+
+
+def _chunk(model, position, normal, geometric_normal, wo, scene_rc, mesh, hit_radiance,
+           environment, local, pdf, weight, offset_rel=1e-5):
+    """:func:`indirect_radiance` on one chunk of pixels; returns ``(delta, number of hits)``."""
+    n_pix, s, c = position.shape[0], local.shape[0], 3
     nt = torch.as_tensor(normal, dtype=torch.float64)
     t, b = orthonormal_basis(nt)
     lt = torch.as_tensor(local)
@@ -127,6 +143,4 @@ def indirect_radiance(model, position: np.ndarray, normal: np.ndarray,
         f = model.eval_cos(torch.as_tensor(nn), torch.as_tensor(dd), torch.as_tensor(ww))
         f = f.numpy().reshape(rows.size, s, -1)
         delta[rows] = np.einsum("nsc,s->nc", f * l_in[rows], weight / pdf)
-    stats = {"rays": int(n_pix * s), "hit_fraction": float(hit.mean()),
-             "directions": [int(d) for d in directions]}
-    return delta, stats
+    return delta, int(hit.sum())
