@@ -58,7 +58,9 @@ from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights
 
-__all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "fit_aldrian_smith",
+__all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "SharedAlbedoReference",
+           "estimate_colour_transform_shared_albedo", "SHARED_ALBEDO_AMBIGUITY",
+           "fit_aldrian_smith",
            "fit_aldrian_smith_samples", "colour_transform_matrix", "fit_colour_transform",
            "estimate_colour_transform", "knn_edges", "LUMA", "TIED_SPECULAR_LMAX"]
 
@@ -145,6 +147,8 @@ class ColourTransform:
     source: str
     covariance: torch.Tensor | None = None
     rms: float | None = None
+    #: what the reference leaves unidentified (shared-albedo reference), else ``None``
+    ambiguity: str | None = None
 
     @property
     def M(self) -> torch.Tensor:  # noqa: N802 - the paper's symbol
@@ -163,6 +167,8 @@ class ColourTransform:
         out = {"identified": self.identified, "source": self.source,
                "gain": self.gain.tolist(), "contrast": self.contrast,
                "offset": self.offset.tolist(), "M": self.M.tolist(), "rms": self.rms}
+        if self.ambiguity:
+            out["not_identified"] = self.ambiguity
         if se is not None:
             out["stderr"] = {"gain": se[:3].tolist(), "contrast": float(se[3]),
                              "offset": se[4:].tolist()}
@@ -213,6 +219,226 @@ def estimate_colour_transform(ref: ColourReference) -> ColourTransform:
                            source=f"estimated from {ref.source} ({p} patches)",
                            covariance=cov, rms=rms)
 
+
+
+@dataclass
+class SharedAlbedoReference:
+    """Several images of the same surface points (shared albedo) under different lighting.
+
+    ``observed[j, k]`` is the camera value of surface point ``k`` (normal ``normal[k]``) in
+    image ``j``; every image has its own unknown lighting and its own colour transform
+    ``(M_j, o_j)``; the diffuse albedo ``a_k`` is free per point and shared by the images:
+    ``observed[j, k] ≈ M_j ((U_k L_j) ∘ a_k) + o_j`` (A&S eq. 1 without the specular term: the
+    points should be matte, or their highlights masked with NaN). ``target`` is the image whose
+    transform the A&S fit uses. See :func:`estimate_colour_transform_shared_albedo` for what it
+    identifies.
+    """
+
+    observed: torch.Tensor  # (J, N, 3) camera values; NaN = not seen
+    normal: torch.Tensor  # (N, 3) unit normals, world frame
+    variance: torch.Tensor | None = None  # (J, N, 3) noise variance
+    lmax: int = 4  # band limit of each image's lighting (odd bands >= 3 unobservable)
+    target: int = 0
+    source: str = "images sharing albedo"
+
+
+#: What a shared-albedo reference leaves unidentified (stated in results and docs).
+SHARED_ALBEDO_AMBIGUITY = (
+    "each column of M is identified only up to a scale (the camera's gain per channel trades "
+    "with the light's colour and intensity, per image, and the albedo's colour with the "
+    "lights' colour): M is reported with a unit diagonal and the lighting carries the "
+    "per-channel gains; the cross-talk (off-diagonal M_rq/M_qq) and the offset o are "
+    "identified; A&S's gain and contrast are not reported")
+
+
+def estimate_colour_transform_shared_albedo(ref: SharedAlbedoReference
+                                            ) -> list[ColourTransform]:
+    r"""Colour transforms ``(M_j, o_j)`` of several images that share one albedo.
+
+    Model (A&S eq. 1, diffuse part, per image ``j`` and point ``k``): ``I_jk = M_j((U_k L_j) ∘
+    a_k) + o_j``, lighting ``L_j`` unknown per image (``ref.lmax``, the Lambertian filter folded
+    into ``U``, R&H 2001 eq. 8), albedo ``a_k`` free per point, ``M_j`` any 3x3 (A&S's
+    gain-and-contrast form is a special case). From one image a free albedo absorbs any ``M``;
+    with ``J ≥ 2`` images it cannot. The transformations that leave every image unchanged are
+    exactly ``M_j → M_j E_j``, ``L_j → L_j E_j⁻¹`` (``E_j`` diagonal, per image: the gain per
+    channel vs the light's colour) and ``a → D a``, ``L_j → L_j D⁻¹`` (``D`` diagonal, shared:
+    the albedo's colour vs the lights' colour) — provided the lights' colour varies with
+    direction (with white lights, ``L_j,c ∝ L_j`` for all c, any 3x3 ``D`` commutes with the
+    shading and the cross-talk is not identified either; the covariance then says so). Fixed
+    here by ``diag(M_j) = 1`` and ``L_0,00 = 1`` per channel; identified per image: the six
+    cross-talk ratios ``M_rq/M_qq`` and the offset ``o_j`` (:data:`SHARED_ALBEDO_AMBIGUITY`).
+
+    Alternating least squares (for fixed ``M, o`` the model is bilinear in ``L, a``; for fixed
+    ``L, a`` linear in ``M, o``), then Levenberg-Marquardt on the weighted least-squares cost,
+    the per-point ``3 × 3`` albedo blocks eliminated (Schur complement). Covariance of each
+    image's ``(vec M, o)`` (12 x 12, row-major ``M``; the fixed diagonal's rows are 0): ``σ²``
+    times the inverse Schur complement, ``σ²`` the residual variance without ``variance``,
+    ``max(1, χ²_red)`` with it.
+
+    Returns
+    -------
+    list of ColourTransform
+        One per image (general ``M``), ``identified = True``, the ambiguity in ``ambiguity``.
+    """
+    y = torch.as_tensor(ref.observed, dtype=_F64)
+    nrm = torch.nn.functional.normalize(torch.as_tensor(ref.normal, dtype=_F64), dim=-1)
+    if y.ndim != 3 or y.shape[-1] != 3 or nrm.ndim != 2 or y.shape[1] != nrm.shape[0] \
+            or nrm.shape[-1] != 3:
+        raise FitError(f"shared-albedo reference: observed {tuple(y.shape)} must be (J, N, 3) "
+                       f"with the N normals {tuple(nrm.shape)} (N, 3)")
+    J, N, _ = y.shape
+    if J < 2:
+        raise FitError("shared-albedo reference: needs at least 2 images of the same points "
+                       "under different lighting (from one image a free albedo absorbs any M)")
+    if not 0 <= ref.target < J:
+        raise FitError(f"shared-albedo reference: target image {ref.target} not in 0..{J - 1}")
+    ok = torch.isfinite(y).all(-1) & torch.isfinite(nrm).all(-1)[None]  # (J, N)
+    if ref.variance is not None:
+        var = torch.as_tensor(ref.variance, dtype=_F64).expand(J, N, 3)
+        ok &= torch.isfinite(var).all(-1) & (var > 0).all(-1)
+        w = torch.where(ok[..., None], 1.0 / var.clamp_min(1e-300), torch.zeros_like(y))
+    else:
+        w = ok[..., None].to(_F64).expand(J, N, 3).clone()
+    y = torch.where(ok[..., None], y, torch.zeros_like(y))
+    band = band_of_index(ref.lmax)
+    filt = diffuse_filter(ref.lmax)[band]
+    observ = filt.abs() > 1e-12 * float(filt.abs().max())
+    U = real_sh(nrm, ref.lmax)[:, observ] * filt[observ]  # (N, ko)
+    ko = U.shape[1]
+    if int((ok.sum(0) >= 2).sum()) < 3 * ko:
+        raise FitError(f"shared-albedo reference: only {int((ok.sum(0) >= 2).sum())} points "
+                       f"are seen in 2 or more images; need at least {3 * ko} for lighting to "
+                       f"l = {ref.lmax}")
+    # per image: L (ko, 3) channel-major, M (3, 3) row-major, o (3)
+    P = 3 * ko + 12
+    iL, iM, iO = slice(0, 3 * ko), slice(3 * ko, 3 * ko + 9), slice(3 * ko + 9, P)
+    free = torch.ones(J, P, dtype=torch.bool)
+    free[:, [3 * ko + 4 * c for c in range(3)]] = False  # diag(M_j) = 1: the gauge E_j
+    free[0, [c * ko for c in range(3)]] = False  # L_0,00 = 1 per channel: the gauge D
+    fidx = torch.nonzero(free.reshape(-1)).reshape(-1)
+
+    def unpack(th):  # th (J, P)
+        return (th[:, iL].reshape(J, 3, ko).transpose(1, 2), th[:, iM].reshape(J, 3, 3),
+                th[:, iO])
+
+    def predict(th, a):
+        L, M, o = unpack(th)
+        s = torch.einsum("nk,jkc->jnc", U, L)  # (J, N, 3) shading
+        f = s * a[None]
+        return torch.einsum("jcd,jnd->jnc", M, f) + o[:, None, :], s, f
+
+    def cost(th, a):
+        return float((w * (y - predict(th, a)[0]) ** 2).sum())
+
+    # --- start: M = I, o = 0; alternate lighting and albedo (each linear), then M, o ---
+    th = torch.zeros(J, P, dtype=_F64)
+    th[:, iM] = torch.eye(3, dtype=_F64).reshape(-1)
+    a = torch.full((N, 3), 0.5, dtype=_F64)
+    for _ in range(20):
+        L, M, o = unpack(th)
+        yy = torch.einsum("jcd,jnd->jnc", torch.linalg.inv(M), y - o[:, None, :])
+        for j in range(J):
+            for ch in range(3):
+                sw = w[j, :, ch:ch + 1].sqrt()
+                th[j, ch * ko:(ch + 1) * ko] = torch.linalg.lstsq(
+                    U * a[:, ch:ch + 1] * sw, yy[j, :, ch:ch + 1] * sw).solution[:, 0]
+        s = torch.einsum("nk,jkc->jnc", U, unpack(th)[0])
+        a = (w * s * yy).sum(0) / (w * s * s).sum(0).clamp_min(1e-300)
+        f = s * a[None]
+        for j in range(J):  # rows of M_j and o_j: linear least squares per channel
+            X = torch.cat([f[j], torch.ones(N, 1, dtype=_F64)], 1)
+            for c in range(3):
+                sw = w[j, :, c:c + 1].sqrt()
+                sol = torch.linalg.lstsq(X * sw, y[j, :, c:c + 1] * sw).solution[:, 0]
+                th[j, 3 * ko + 3 * c:3 * ko + 3 * c + 3] = sol[:3]
+                th[j, 3 * ko + 9 + c] = sol[3]
+        # back to the gauge: unit diagonal of M_j (scale into L_j), L_0,00 = 1 (into a)
+        L, M, o = unpack(th)
+        d = torch.diagonal(M, dim1=-2, dim2=-1)  # (J, 3)
+        if (d.abs() < 1e-12).any():
+            raise FitError("shared-albedo reference: a channel of the images carries no "
+                           "signal (M has a zero column)")
+        th[:, iM] = (M / d[:, None, :]).reshape(J, 9)
+        th[:, iL] = (L * d[:, None, :]).transpose(1, 2).reshape(J, 3 * ko)
+        L0 = th[0, [c * ko for c in range(3)]].clone()
+        if (L0.abs() < 1e-12).any():
+            raise FitError("shared-albedo reference: image 0's lighting has no constant term")
+        th[:, iL] = (unpack(th)[0] / L0).transpose(1, 2).reshape(J, 3 * ko)
+        a = a * L0
+
+    def system(th, a):
+        p, s, f = predict(th, a)
+        L, M, o = unpack(th)
+        r = y - p  # (J, N, 3)
+        Ja = M[:, None, :, :] * s[:, :, None, :]  # (J, N, c, d): ∂p_c/∂a_d
+        Jg = torch.zeros(J, N, 3, P, dtype=_F64)
+        Jg[..., iL] = (M[:, None, :, :, None] * a[None, :, None, :, None]
+                       * U[None, :, None, None, :]).reshape(J, N, 3, 3 * ko)
+        for c in range(3):
+            Jg[:, :, c, 3 * ko + 3 * c:3 * ko + 3 * c + 3] = f
+            Jg[:, :, c, 3 * ko + 9 + c] = 1.0
+        Jg = Jg * free[:, None, None, :]
+        Haa = torch.einsum("jncd,jnc,jnce->nde", Ja, w, Ja)
+        ra = torch.einsum("jncd,jnc->nd", Ja, w * r)
+        Hgg = torch.block_diag(*[torch.einsum("ncp,nc,ncq->pq", Jg[j], w[j], Jg[j])
+                                 for j in range(J)])
+        rg = torch.einsum("jncp,jnc->jp", Jg, w * r).reshape(-1)
+        Hga = torch.einsum("jncp,jnc,jncd->jpnd", Jg, w, Ja).reshape(J * P, N, 3)
+        return Hgg, rg, Haa, ra, Hga
+
+    def solve(Hgg, rg, Haa, ra, Hga, damp):
+        """Solve the normal equations, per-point albedo blocks eliminated (Schur complement)."""
+        Hg = Hgg + damp * torch.diag(torch.diagonal(Hgg))
+        dia = torch.diagonal(Haa, dim1=-2, dim2=-1)
+        # 1e-12 of the block's scale: keeps a point seen in one image invertible (its albedo
+        # is then free and the point carries no information, which is what this costs)
+        Ha = Haa + torch.diag_embed(damp * dia + 1e-12 * dia.mean(-1, keepdim=True) + 1e-300)
+        Hainv = torch.linalg.inv(Ha)
+        X = torch.einsum("nde,gne->gnd", Hainv, Hga)
+        S = Hg - torch.einsum("gnd,hnd->gh", Hga, X)
+        z = torch.einsum("nde,ne->nd", Hainv, ra)
+        rhs = rg - torch.einsum("gnd,nd->g", Hga, z)
+        Sf = S[fidx][:, fidx]
+        dg = torch.zeros(J * P, dtype=_F64)
+        dg[fidx] = torch.linalg.solve(Sf, rhs[fidx])
+        return dg, z - torch.einsum("gnd,g->nd", X, dg), Sf
+
+    cur, mu, converged = cost(th, a), 1e-4, False
+    for _ in range(100):
+        Hgg, rg, Haa, ra, Hga = system(th, a)
+        stepped = done = False
+        for _ in range(12):
+            dg, da, _ = solve(Hgg, rg, Haa, ra, Hga, mu)
+            th_n, a_n = th + dg.reshape(J, P), a + da
+            new = cost(th_n, a_n)
+            if new <= cur:
+                done = (cur - new) <= 1e-12 * max(cur, 1e-300)
+                th, a, cur, mu = th_n, a_n, new, max(mu / 10, 1e-12)
+                stepped = True
+                break
+            mu *= 10
+        if not stepped or done:
+            converged = True
+            break
+    Hgg, rg, Haa, ra, Hga = system(th, a)
+    _, _, Sf = solve(Hgg, rg, Haa, ra, Hga, 0.0)
+    n_obs = 3 * int(ok.sum())
+    dof = max(n_obs - 3 * N - int(fidx.numel()), 1)
+    chi2 = cur / dof
+    s2 = chi2 if ref.variance is None else max(1.0, chi2)
+    cov = torch.zeros(J * P, J * P, dtype=_F64)
+    cov[fidx[:, None], fidx[None, :]] = s2 * torch.linalg.inv(Sf)
+    _, M, o = unpack(th)
+    out = []
+    for j in range(J):
+        sel = torch.arange(j * P + 3 * ko, (j + 1) * P)
+        out.append(_GivenMatrix(
+            M[j].clone(), o[j].clone(), covariance=cov[sel[:, None], sel[None, :]].clone(),
+            source=(f"estimated from {ref.source} (image {j} of {J}, {N} points sharing "
+                    f"albedo, lighting to l = {ref.lmax} per image"
+                    + ("" if converged else "; not converged") + ")"),
+            rms=math.sqrt(cur / max(n_obs, 1)), ambiguity=SHARED_ALBEDO_AMBIGUITY))
+    return out
 
 def knn_edges(points: torch.Tensor, k: int = 6) -> torch.Tensor:
     """``(E, 2)`` undirected edges of the k-nearest-neighbour graph of ``points`` (``(N, 3)``)."""
@@ -359,6 +585,8 @@ def _colour_of(colour) -> ColourTransform:
                        "ColourReference (ColorChecker patches), a known (M, o) or None")
     if isinstance(colour, ColourReference):
         return estimate_colour_transform(colour)
+    if isinstance(colour, SharedAlbedoReference):
+        return estimate_colour_transform_shared_albedo(colour)[colour.target]
     if isinstance(colour, ColourTransform):
         return colour
     M, o = (torch.as_tensor(t, dtype=_F64) for t in colour)
@@ -382,17 +610,39 @@ def _contrast_of(M: torch.Tensor) -> float | None:
 
 
 class _GivenMatrix(ColourTransform):
-    """A given ``M`` not of A&S's gain/contrast form (any invertible 3x3)."""
+    """A colour transform with any invertible 3x3 ``M`` (not A&S's gain/contrast form).
 
-    def __init__(self, M, o):
+    ``covariance`` (when given) is over ``(vec M, o)``: 12 x 12, ``M`` row-major.
+    """
+
+    def __init__(self, M, o, covariance=None, source="given (general 3x3 M)", rms=None,
+                 ambiguity=None):
         super().__init__(gain=torch.ones(3, dtype=_F64), contrast=1.0, offset=o,
-                         identified=True, source="given (general 3x3 M)")
+                         identified=True, source=source, covariance=covariance, rms=rms,
+                         ambiguity=ambiguity)
         self._M = M
 
     @property
     def M(self) -> torch.Tensor:  # noqa: N802
-        """The given matrix."""
+        """The matrix."""
         return self._M
+
+    @property
+    def phi(self) -> torch.Tensor:
+        """``(vec M, o)``, ``M`` row-major."""
+        return torch.cat([self._M.reshape(-1), self.offset])
+
+    def to_dict(self) -> dict:
+        """``results.json`` block (``gain``, ``contrast``: null — not of A&S's form)."""
+        out = {"identified": self.identified, "source": self.source, "gain": None,
+               "contrast": None, "offset": self.offset.tolist(), "M": self.M.tolist(),
+               "rms": self.rms}
+        if self.covariance is not None:
+            se = torch.diagonal(self.covariance).clamp_min(0).sqrt()
+            out["stderr"] = {"M": se[:9].reshape(3, 3).tolist(), "offset": se[9:].tolist()}
+        if self.ambiguity:
+            out["not_identified"] = self.ambiguity
+        return out
 
 
 def _laplacian(edges: torch.Tensor, n: int) -> sp.csr_matrix:
@@ -751,26 +1001,32 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
         cov_b = s2 * (Hinv_aa + X @ Sinv @ X.T)
         cov_gb = -s2 * Sinv @ X.T
     if col.covariance is not None:
-        # first-order propagation of φ = (g, c_t, o): dθ/dφ = −H⁻¹ Jᵀ W ∂(M f + o)/∂φ
+        # first-order propagation of φ = (g, c_t, o), or (vec M, o) for a general M:
+        # dθ/dφ = −H⁻¹ Jᵀ W ∂(M f + o)/∂φ
         phi = col.phi
-        D = torch.zeros(3 * N, 7, dtype=_F64)
-        for j in range(4):
-            h = 1e-6 * max(1.0, abs(float(phi[j])))
-            pp, pm = phi.clone(), phi.clone()
-            pp[j] += h
-            pm[j] -= h
-            dM = (colour_transform_matrix(pp[:3], float(pp[3]))
-                  - colour_transform_matrix(pm[:3], float(pm[3]))) / (2 * h)
-            D[:, j] = (pred_y @ dM.T).T.reshape(-1)
+        nphi = phi.numel()
+        D = torch.zeros(3 * N, nphi, dtype=_F64)
+        if isinstance(col, _GivenMatrix):
+            for c in range(3):
+                D[c * N:(c + 1) * N, 3 * c:3 * c + 3] = pred_y
+        else:
+            for j in range(4):
+                h = 1e-6 * max(1.0, abs(float(phi[j])))
+                pp, pm = phi.clone(), phi.clone()
+                pp[j] += h
+                pm[j] -= h
+                dM = (colour_transform_matrix(pp[:3], float(pp[3]))
+                      - colour_transform_matrix(pm[:3], float(pm[3]))) / (2 * h)
+                D[:, j] = (pred_y @ dM.T).T.reshape(-1)
         for c in range(3):
-            D[c * N:(c + 1) * N, 4 + c] = 1.0
+            D[c * N:(c + 1) * N, nphi - 3 + c] = 1.0
         D = D * ok.repeat(3)[:, None]
         rgD = (Jg * ww[:, None]).T @ D
         if texture:
             raD = (ja * ww[:, None]).T @ D
         else:
-            wD = w.T[:, :, None] * D.reshape(3, N, 7)  # (c, n, j)
-            raD = torch.einsum("cnj,cd,nd->dnj", wD, Mm, shade).reshape(3 * N, 7)
+            wD = w.T[:, :, None] * D.reshape(3, N, nphi)  # (c, n, j)
+            raD = torch.einsum("cnj,cd,nd->dnj", wD, Mm, shade).reshape(3 * N, nphi)
         dgD, dAD, *_ = joint_solve(Hgg, Haa, Hga, rgD, raD, 0.0)
         cov_g = cov_g + dgD @ col.covariance @ dgD.T
         if texture:
@@ -808,7 +1064,9 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
                            if texture else "NOT resolved (no grayworld prior, no texture "
                            "model): the light's colour is assumed carried by the albedo prior")},
            {"name": "camera gain vs light colour vs object colour",
-            "resolution": ("identified by " + col.source) if col.identified else
+            "resolution": ("identified by " + col.source
+                           + (f"; not identified: {col.ambiguity}" if col.ambiguity else ""))
+            if col.identified else
             ("NOT identified: no colour reference; M = I, o = 0 assumed, so the lighting "
              "carries the camera's gain and white balance and the offset is taken as 0")}]
     amb.append({"name": "specular DC (kappa_0) vs albedo level",
