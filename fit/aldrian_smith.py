@@ -483,6 +483,17 @@ class AldrianSmithFit:
     parameter_names: list[str]
     priors: dict = field(default_factory=dict)
     ambiguities: list[dict] = field(default_factory=list)
+    #: per κ_l: determined by the data (κ_0 is not with a free albedo: set to 0, stderr inf)
+    specular_low_determined: torch.Tensor | None = None
+
+    def _kappa_out(self) -> tuple[list, list]:
+        """κ_l and their standard errors for results.json, ``None`` where not determined."""
+        det = (torch.ones_like(self.specular_low, dtype=torch.bool)
+               if self.specular_low_determined is None else self.specular_low_determined)
+        val = [v if d else None for v, d in zip(self.specular_low.tolist(), det.tolist())]
+        se = [e if d and math.isfinite(e) else None
+              for e, d in zip(self.specular_low_stderr.tolist(), det.tolist())]
+        return val, se
 
     @property
     def lighting(self) -> torch.Tensor:
@@ -535,6 +546,7 @@ class AldrianSmithFit:
         """Keys for ``results.json``."""
         def fin(t):
             return [v if math.isfinite(v) else None for v in t.reshape(-1).tolist()]
+        kv, kse = self._kappa_out()
         return {"aldrian_smith": {
             "lighting_sh": self.lighting_radiance.tolist(),
             "diffuse_coefficients": self.lighting.tolist(),
@@ -544,8 +556,9 @@ class AldrianSmithFit:
             "texture_stderr": None if self.texture_stderr is None
             else fin(self.texture_stderr),
             "albedo_mean": self.albedo.mean(0).tolist(),
-            "specular_low_kappa": self.specular_low.tolist(),
-            "specular_low_kappa_stderr": fin(self.specular_low_stderr),
+            "specular_low_kappa": kv,
+            "specular_low_kappa_stderr": kse,
+            "specular_low_kappa_determined": [v is not None for v in kv],
             "specular_high": self.specular_high.tolist(),
             "specular_high_stderr": [fin(r) for r in self.specular_high_stderr],
             "colour_transform": self.colour.to_dict(), "iterations": self.iterations,
@@ -554,14 +567,16 @@ class AldrianSmithFit:
             "lighting": self.lighting_block(),
             "brdf": {"model": "aldrian-smith", "parameters": {
                 "albedo_mean": self.albedo.mean(0).tolist(),
-                "specular_kappa": self.specular_low.tolist()},
-                "stderr": {"specular_kappa": fin(self.specular_low_stderr)}},
+                "specular_kappa": kv},
+                "stderr": {"specular_kappa": kse}},
             "ambiguities": self.ambiguities}
 
     def summary(self) -> list[str]:
         """Report lines."""
-        k = ", ".join(f"{v:.4g} ± {e:.2g}" for v, e in zip(self.specular_low.tolist(),
-                                                         self.specular_low_stderr.tolist()))
+        kv, kse = self._kappa_out()
+        k = ", ".join(f"{v:.4g} ± {e:.2g}" if v is not None and e is not None else
+                      f"κ_{i} not determined (free albedo absorbs it)" if v is None else
+                      f"{v:.4g}" for i, (v, e) in enumerate(zip(kv, kse)))
         col = self.colour
         cs = (f"colour transform {col.source}" if col.identified else
               "colour transform NOT identified (no colour reference): M = I, o = 0 assumed; "
@@ -824,6 +839,12 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     if kh:
         Pg[iX, iX] += (simplicity + 1e-12) * sX * torch.eye(3 * kh, dtype=_F64)
     Pg[iK, iK] += 1e-12 * torch.eye(nk, dtype=_F64)
+    if not texture:
+        # κ_0 is not identified with a free albedo: its constant κ_0 L_00,c Y_00 is absorbed
+        # exactly by a_k,c + κ_0 L_00,c Y_00 / (U_k L)_c, which a smoothness prior barely sees
+        # (measured: -0.298 ± 0.025 against 0.300 on quadrature renders). Pinned to 0 — the
+        # albedo then carries it — and reported not determined, never as a measurement.
+        Pg[iK.start, iK.start] += 1e8 * max(float(w.sum()), 1.0)
     mu_a = torch.zeros(A, dtype=_F64)
     edges_used = "none"
     lap = None
@@ -1073,20 +1094,27 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
                 "resolution": "the tied specular DC κ_0 L_00 Y_00 is a constant; it is "
                 "separated from the diffuse DC only through the albedo's spatial variation "
                 + ("(the texture model's components): with a nearly uniform albedo only "
-                   "(albedo + κ_0)·L_00 is determined" if texture else
-                   "— a smooth free albedo can absorb it (an albedo change ∝ 1/shading), only "
-                   "the smoothness prior separates them; give a texture model for a reliable "
-                   "κ_0") + "; κ_1, κ_2 vary with r and separate well"})
+                   "(albedo + κ_0)·L_00 is determined; κ_1, κ_2 vary with r and separate well"
+                   if texture else
+                   "— NOT identified with a free albedo: the data are unchanged under "
+                   "κ_0 → κ_0 + δ, a_k,c → a_k,c − δ L_00,c Y_00 / (U_k L)_c (the smoothness "
+                   "prior barely sees that smooth change); κ_0 is set to 0 (the albedo carries "
+                   "the specular DC) and reported not determined; give a texture model to "
+                   "measure it; κ_1, κ_2 vary with r and are determined")})
     if unobservable:
         amb.append({"name": "odd lighting bands >= 3",
                     "resolution": f"bands {unobservable} unobservable from a Lambertian "
                     "surface (Â_l = 0); reported as 0 with no standard error"})
+    kse, kdet = se_g[iK].clone(), torch.ones(nk, dtype=torch.bool)
+    if not texture:
+        kse[0], kdet[0] = math.inf, False
     return AldrianSmithFit(
         lmax=lmax, lighting_radiance=Lfull, lighting_stderr=Lse, determined=observ.clone(),
         unobservable_bands=unobservable, albedo=alb, albedo_model=albedo_model,
         texture_coefficients=ta.clone() if texture else None,
         texture_stderr=torch.diagonal(cov_b).clamp_min(0).sqrt() if texture else None,
-        specular_low=kap.clone(), specular_low_stderr=se_g[iK],
+        specular_low=kap.clone(), specular_low_stderr=kse,
+        specular_low_determined=kdet,
         specular_high=xh.clone(), specular_high_stderr=se_g[iX].reshape(3, kh).T,
         colour=col, iterations=iters, converged=converged, prediction=pred,
         chi2_reduced=chi2, chi2_channels=chi2_c, noise_source=noise_source, covariance=cov,

@@ -50,7 +50,11 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
            Estimate("albedo_mean", res.albedo.mean(0), None, "channel",
                     note="mean of the per-sample albedo: no standard error"),
            Estimate("specular_kappa", res.specular_low, res.specular_low_stderr, "band",
-                    note=note)]
+                    determined=res.specular_low_determined,
+                    note=note if res.specular_low_determined is None
+                    or bool(res.specular_low_determined.all()) else
+                    note + "; kappa_0 not determined with a free albedo (set to 0, the albedo "
+                    "carries the specular DC)")]
     return FitResult("aldrian-smith", est, res.prediction, res.to_results(),
                      summary=res.summary(), ambiguities=list(res.ambiguities))
 
