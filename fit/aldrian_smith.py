@@ -578,7 +578,9 @@ class AldrianSmithFit:
                       f"κ_{i} not determined (free albedo absorbs it)" if v is None else
                       f"{v:.4g}" for i, (v, e) in enumerate(zip(kv, kse)))
         col = self.colour
-        cs = (f"colour transform {col.source}" if col.identified else
+        cs = (f"colour transform {col.source}"
+              + ("; M up to each column's scale (the lighting carries the per-channel gains)"
+                 if col.ambiguity else "") if col.identified else
               "colour transform NOT identified (no colour reference): M = I, o = 0 assumed; "
               "camera gain, light colour and object colour are confounded")
         unob = (f"; bands {self.unobservable_bands} unobservable (Lambertian Â_l = 0)"
