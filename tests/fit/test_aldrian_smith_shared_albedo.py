@@ -57,17 +57,18 @@ def scene():
     n = torch.stack([(1 - z ** 2).sqrt() * ph.cos(), (1 - z ** 2).sqrt() * ph.sin(), z], -1)
     g = torch.Generator().manual_seed(21)
     albedo = 0.15 + 0.7 * torch.rand(N_POINTS, 3, generator=g, dtype=F64)
-    clean = []
+    clean, lights = [], []
     for j in range(3):
         L = torch.zeros(25, 3, dtype=F64)
         L[:9] = torch.tensor(GRACE_RH2001, dtype=F64)
         L[0] += 0.4  # brighter ambient keeps the perturbed radiance positive
         L[1:9] += 0.08 * torch.randn(8, 3, generator=g, dtype=F64)
         L[9:] = 0.03 * torch.randn(16, 3, generator=g, dtype=F64)
+        lights.append(L)
         f = albedo / math.pi * _irradiance(n, L)
         assert float(f.min()) > 0.005, float(f.min())  # positive radiance everywhere
         clean.append(f @ colour_transform_matrix(GAINS[j], CONTRASTS[j]).T + OFFSETS[j])
-    return dict(n=n, clean=torch.stack(clean))
+    return dict(n=n, clean=torch.stack(clean), L=lights, albedo=albedo)
 
 
 def _estimate(scene, seed):
@@ -91,9 +92,10 @@ def _z(cts) -> torch.Tensor:
 
 def test_shared_albedo_identifies_m_within_intervals(scene, one_thread):
     """Repeated noisy captures: the 95% intervals of the cross-talk ratios and offsets of every
-    image cover the truth 90–98% of the time (pooled, 3 images × 9 quantities × 12 captures).
+    image cover the truth 90–98% of the time (pooled, 3 images × 9 quantities × 8 captures;
+    measured 0.963; the slow test checks each kind over 40 captures).
     """
-    zs = torch.stack([_z(_estimate(scene, seed)) for seed in range(12)])
+    zs = torch.stack([_z(_estimate(scene, seed)) for seed in range(8)])
     assert torch.isfinite(zs).all()
     cover = float((zs.abs() < 1.96).double().mean())
     assert 0.90 <= cover <= 0.98, (cover, zs.abs().max(0).values)
@@ -101,7 +103,10 @@ def test_shared_albedo_identifies_m_within_intervals(scene, one_thread):
 
 @pytest.mark.slow
 def test_shared_albedo_coverage_per_quantity(scene, one_thread):
-    """40 captures: cross-talk ratios and offsets each covered 90–98% (binomial slack)."""
+    """40 captures: cross-talk ratios and offsets each covered 90–98%.
+
+    Measured: cross-talk 0.951 of 720 (z spread 1.04), offset 0.908 of 360 (spread 1.05).
+    """
     zs = torch.stack([_z(_estimate(scene, 100 + seed)) for seed in range(40)])
     per_image = zs.reshape(40, 3, 9)
     for name, z in (("cross-talk", per_image[..., :6]), ("offset", per_image[..., 6:])):
@@ -142,3 +147,32 @@ def test_shared_albedo_needs_two_images(scene):
     with pytest.raises(FitError, match="target image 5"):
         estimate_colour_transform_shared_albedo(SharedAlbedoReference(scene["clean"],
                                                                       scene["n"], target=5))
+
+
+def test_fit_with_shared_albedo_reference_recovers_lighting_up_to_the_ambiguity(scene,
+                                                                              one_thread):
+    """The A&S fit of image 0 with the shared-albedo reference: the lighting is the truth with
+    the named ambiguity applied (each channel times the column scale ``M_cc`` that the unit
+    diagonal leaves out), inside its 95% intervals 90–98% of the time (4 captures, 216
+    intervals; measured 0.963). Texture model: the true albedo as mean plus two small
+    components (truth coefficients 0); the points are matte (truth κ = 0).
+    """
+    n_pts = scene["n"].shape[0]
+    pcs = 0.02 * torch.randn(2, n_pts, 3, generator=torch.Generator().manual_seed(99),
+                             dtype=F64)
+    M = colour_transform_matrix(GAINS[0], CONTRASTS[0])
+    truth = scene["L"][0] * torch.diagonal(M)[None, :]
+    zs = []
+    for seed in range(4):
+        g = torch.Generator().manual_seed(seed)
+        obs = scene["clean"] + SIGMA * torch.randn(scene["clean"].shape, generator=g, dtype=F64)
+        var = torch.full_like(obs, SIGMA ** 2)
+        f = fit_aldrian_smith(scene["n"], scene["n"], obs[0], lmax=4, specular_lmax=4,
+                              colour=SharedAlbedoReference(obs, scene["n"], variance=var),
+                              texture_mean=scene["albedo"], texture_pcs=pcs, variance=var[0])
+        zs.append(((f.lighting_radiance - truth) / f.lighting_stderr)[f.determined])
+        assert (f.texture_coefficients.abs() < 4 * f.texture_stderr).all()
+        assert (f.specular_low.abs() < 4 * f.specular_low_stderr).all()
+    z = torch.cat(zs)
+    cover = float((z.abs() < 1.96).double().mean())
+    assert 0.90 <= cover <= 0.98, cover
