@@ -11,7 +11,9 @@ Conventions (frames, SH normalisation, units) are those of ``docs/conventions.md
 * ``M = diag(g) (c_t I + (1 − c_t) 1 wᵀ)`` and ``o`` (gain ``g``, contrast ``c_t`` mixing toward
   Rec. 709 luma ``w``, offset): A&S "estimated at the beginning of the inverse rendering
   process". **Identifiable only from a reference the capture provides** — a colour chart with
-  known reflectances (:class:`ColourReference`, :func:`estimate_colour_transform`). From the
+  known reflectances (:class:`ColourReference`, :func:`estimate_colour_transform`), or several
+  images of the object under different lighting sharing its albedo
+  (:class:`SharedAlbedoReference`: ``M`` up to each column's scale). From the
   object alone, a red pixel is "skin colour, red illumination, or an increased camera
   sensitivity in the red channel" (A&S, introduction): without a reference ``M = I, o = 0`` is
   *assumed*, and the results say so (``colour_transform.identified = false``).
@@ -698,9 +700,11 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
     texture_mean, texture_pcs : torch.Tensor, optional
         ``(N, 3)`` mean texture ``t̄`` and ``(P, N, 3)`` principal components ``T``. Without
         them the albedo is free per sample with the smoothness prior.
-    colour : ColourReference, ColourTransform, (M, o) or None
-        A colour reference (``M``, ``o`` and their covariance estimated first, step 1), a known
-        transform, or ``None``: ``M = I, o = 0`` *assumed* and reported as not identified.
+    colour : ColourReference, SharedAlbedoReference, ColourTransform, (M, o) or None
+        A colour reference (``M``, ``o`` and their covariance estimated first, step 1: chart
+        patches, or several images sharing the albedo — ``M`` then up to each column's scale,
+        :func:`estimate_colour_transform_shared_albedo`), a known transform, or ``None``:
+        ``M = I, o = 0`` *assumed* and reported as not identified.
     grayworld, simplicity : float
         Prior weights relative to the mean diagonal of the data term's normal matrix of the
         block they act on: ``λ_g Σ_c ||L_c − L̄||²`` (white light) and ``λ_s (||b||² +
