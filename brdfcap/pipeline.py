@@ -16,6 +16,11 @@ from typing import Callable
 
 import torch
 
+from brdfcap.capture.colour_reference import (
+    colour_reference_spec,
+    load_colour_checker_reference,
+    shared_albedo_reference,
+)
 from brdfcap.capture.load import load_capture
 from brdfcap.capture.probes import known_sh_lighting
 from brdfcap.capture.texture_model import texture_model_from_config
@@ -88,13 +93,28 @@ class RunOutcome:
     fit: FitResult | None = None
 
 
-def known_of(capture: Capture, options: RunOptions) -> Known:
+def known_of(capture: Capture, options: RunOptions, samples: Samples | None = None) -> Known:
     """Return what the capture states as known for ``options.problem`` (loads files here).
 
     Known environment lighting (inline, an ``envmap-sh --json`` file or a probe projected to
-    ``max(--brdf-lmax, --lmax)``) is loaded only for problems that need it.
+    ``max(--brdf-lmax, --lmax)``) is loaded only for problems that need it; so are the
+    ``[texture_model]`` and ``[colour_reference]`` of ``aldrian-smith`` (a shared-albedo
+    reference loads and reconstructs the other captures it names and matches them to
+    ``samples``).
     """
     cfg = capture.config
+    colour_ref = None
+    if options.problem == "aldrian-smith":
+        spec = colour_reference_spec(cfg.raw, cfg.root, cfg.toml_path)
+        if spec is not None and spec.kind == "colorchecker":
+            colour_ref = load_colour_checker_reference(spec)
+        elif spec is not None:
+            if samples is None:
+                raise FitError("[colour_reference] kind = \"shared-albedo\" needs this "
+                               "capture's samples", cfg.toml_path)
+            others = [reconstruct_capture(load_capture(d), options)[1] for d in spec.captures]
+            colour_ref = shared_albedo_reference(samples, others, spec,
+                                                 [d.name for d in spec.captures])
     light = None
     if get_problem(options.problem).needs_known_lighting and cfg.lighting_kind == "environment":
         light = known_sh_lighting(cfg.lighting, max(options.brdf_lmax, options.lmax))
@@ -107,7 +127,8 @@ def known_of(capture: Capture, options: RunOptions) -> Known:
                  image_shape=(cfg.camera.height, cfg.camera.width),
                  colour_corrected=cfg.colour is not None,
                  texture_model=texture_model_from_config(cfg.raw, cfg.root, cfg.toml_path)
-                 if options.problem == "aldrian-smith" else None)
+                 if options.problem == "aldrian-smith" else None,
+                 colour_reference=colour_ref)
 
 
 def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitResult:
@@ -117,7 +138,8 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
                        capture.config.toml_path)
     fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
                           brdf_lmax=options.brdf_lmax)
-    return solve_problem(options.problem, samples, known_of(capture, options), fit_opts)
+    return solve_problem(options.problem, samples, known_of(capture, options, samples),
+                         fit_opts)
 
 
 def reconstruct_capture(capture: Capture, options: RunOptions

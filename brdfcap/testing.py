@@ -104,8 +104,9 @@ elevation_deg = 30.0
 """
 
 
-def make_tiny_capture(directory: Path, shared_mesh: bool = True) -> Path:
-    """Simulate :data:`TINY_SCENE` into ``directory/capture`` with a coarse sphere mesh.
+def make_tiny_capture(directory: Path, shared_mesh: bool = True, scene: str = TINY_SCENE
+                      ) -> Path:
+    """Simulate :data:`TINY_SCENE` (or ``scene``) into ``directory/capture``, coarse sphere mesh.
 
     The simulator writes a 256x512 sphere; a 24x48 one keeps runs short. With ``shared_mesh``
     it lies beside the capture (``../sphere.ply``, so ``[paths] root = ".."`` widens the input
@@ -116,7 +117,7 @@ def make_tiny_capture(directory: Path, shared_mesh: bool = True) -> Path:
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    (directory / "scene.toml").write_text(TINY_SCENE)
+    (directory / "scene.toml").write_text(scene)
     cap = simulate(directory / "scene.toml", directory / "capture")
     (cap / "sphere.ply").unlink()
     m = uv_sphere(1.0, 24, 48)

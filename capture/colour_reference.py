@@ -8,15 +8,22 @@ for ``brdfcap.fit.aldrian_smith.ColourReference``. The patches come from pixel b
 available) or are found automatically with ``colour-checker-detection`` (optional extra
 ``brdfcap[colourchecker]``, which also needs ``opencv-python-headless``); without the extra,
 automatic detection fails with one line saying what to install or to give the boxes.
+
+``[colour_reference]`` in ``capture.toml`` names the reference the pipeline gives Aldrian &
+Smith's fit (``docs/capture-format.md``, "Colour reference"): ``kind = "colorchecker"`` (a chart
+image and its boxes, :func:`load_colour_checker_reference`) or ``kind = "shared-albedo"`` (other
+captures of the same object under other lighting, :func:`shared_albedo_reference`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
+from brdfcap.fit.aldrian_smith import ColourReference, SharedAlbedoReference
 
 from brdfcap.core.errors import CaptureError
 
@@ -26,9 +33,20 @@ from .colour import (
     colour_checker_reference,
     patch_means,
 )
+from .images import read_image
 
 __all__ = ["ChartObservation", "colour_reference_from_image", "detect_colour_checker",
-           "DETECTION_EXTRA"]
+           "DETECTION_EXTRA", "ColourReferenceSpec", "colour_reference_spec",
+           "load_colour_checker_reference", "shared_albedo_reference",
+           "COLOUR_REFERENCE_KEYS", "COLOUR_REFERENCE_KINDS"]
+
+#: Kinds of ``[colour_reference]``.
+COLOUR_REFERENCE_KINDS = ("colorchecker", "shared-albedo")
+#: Keys of ``[colour_reference]`` per kind.
+COLOUR_REFERENCE_KEYS = {
+    "colorchecker": {"kind", "checker_image", "checker_boxes", "checker_chart"},
+    "shared-albedo": {"kind", "captures", "lmax", "points"},
+}
 
 #: What to install for automatic detection.
 DETECTION_EXTRA = ("automatic ColorChecker detection needs the optional extra: pip install "
@@ -125,3 +143,126 @@ def colour_reference_from_image(image: np.ndarray,
         bad = [names[i] for i in np.nonzero(~np.isfinite(obs).all(1))[0]]
         raise CaptureError(f"patch boxes of {', '.join(bad)} contain no valid pixel", path)
     return ChartObservation(obs, var, ref, names, "patch boxes")
+
+
+@dataclass
+class ColourReferenceSpec:
+    """``[colour_reference]`` of ``capture.toml``, validated (files not read yet)."""
+
+    kind: str
+    path: Path | None  # capture.toml, for messages
+    checker_image: Path | None = None
+    checker_boxes: list | str = "auto"
+    checker_chart: str | None = None
+    captures: list[Path] = field(default_factory=list)
+    lmax: int = 4
+    points: int = 400
+
+
+def colour_reference_spec(raw: dict | None, root: Path, toml_path: Path | None = None
+                          ) -> ColourReferenceSpec | None:
+    """Parse ``[colour_reference]`` (``None`` when absent); bad keys raise one line each."""
+    tab = (raw or {}).get("colour_reference")
+    if tab is None:
+        return None
+    if not isinstance(tab, dict):
+        raise CaptureError("'colour_reference' must be a table", toml_path)
+    kind = tab.get("kind")
+    if kind not in COLOUR_REFERENCE_KINDS:
+        raise CaptureError(f"key 'colour_reference.kind' = {kind!r}; use one of "
+                           f"{', '.join(repr(k) for k in COLOUR_REFERENCE_KINDS)}", toml_path)
+    bad = sorted(set(tab) - COLOUR_REFERENCE_KEYS[kind])
+    if bad:
+        raise CaptureError(f"unknown key(s) in [colour_reference] (kind {kind!r}): "
+                           f"{', '.join(bad)}; valid: "
+                           f"{', '.join(sorted(COLOUR_REFERENCE_KEYS[kind]))}", toml_path)
+    root = Path(root)
+    if kind == "colorchecker":
+        img = tab.get("checker_image")
+        if not isinstance(img, str):
+            raise CaptureError("key 'colour_reference.checker_image' is required: the linear "
+                               "image of the ColorChecker (camera values, the views' exposure)",
+                               toml_path)
+        boxes = tab.get("checker_boxes", "auto")
+        if not (boxes == "auto" or (isinstance(boxes, list) and all(
+                isinstance(b, list) and len(b) == 4 for b in boxes))):
+            raise CaptureError("key 'colour_reference.checker_boxes' must be \"auto\" or 24 "
+                               "boxes [x0, y0, x1, y1] in pixels (chart order)", toml_path)
+        chart = tab.get("checker_chart")
+        if chart is not None and not isinstance(chart, str):
+            raise CaptureError("key 'colour_reference.checker_chart' must be a chart name",
+                               toml_path)
+        return ColourReferenceSpec(kind, toml_path, checker_image=root / img,
+                                   checker_boxes=boxes, checker_chart=chart)
+    caps = tab.get("captures")
+    if not (isinstance(caps, list) and caps and all(isinstance(c, str) for c in caps)):
+        raise CaptureError("key 'colour_reference.captures' must list the other capture "
+                           "folders of the same object (same mesh and world frame, other "
+                           "lighting), e.g. [\"../lit_b\"]", toml_path)
+    lmax, pts = tab.get("lmax", 4), tab.get("points", 400)
+    for key, v, lo in (("lmax", lmax, 0), ("points", pts, 50)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise CaptureError(f"key 'colour_reference.{key}' must be an integer >= {lo}, got "
+                               f"{v!r}", toml_path)
+    return ColourReferenceSpec(kind, toml_path, captures=[root / c for c in caps], lmax=lmax,
+                               points=pts)
+
+
+def load_colour_checker_reference(spec: ColourReferenceSpec) -> ColourReference:
+    """Read the chart image of a ``kind = "colorchecker"`` spec: patch means vs reference."""
+    image = read_image(spec.checker_image)
+    obs = colour_reference_from_image(image, spec.checker_boxes,
+                                      chart=spec.checker_chart or DEFAULT_COLOUR_CHECKER,
+                                      path=spec.checker_image)
+    var = None if obs.variance is None or not np.isfinite(obs.variance).all() \
+        else torch.as_tensor(obs.variance, dtype=torch.float64)
+    return ColourReference(torch.as_tensor(obs.observed, dtype=torch.float64),
+                           torch.as_tensor(obs.reference, dtype=torch.float64), variance=var,
+                           source=f"ColorChecker '{spec.checker_image.name}' ({obs.method})")
+
+
+def shared_albedo_reference(main, others: Sequence, spec: ColourReferenceSpec,
+                            names: Sequence[str] = ()) -> SharedAlbedoReference:
+    """Match surface points across captures of one object: image 0 = this capture.
+
+    ``main`` and each of ``others`` are per-pixel samples (``position``, ``normal``,
+    ``radiance``, ``variance``: world frame). ``spec.points`` samples of ``main`` (an even
+    subsample) are the points; each other capture contributes, per point, its sample nearest in
+    world position, if within 2 × the median spacing of that capture's samples (else NaN: not
+    seen).
+    """
+    from scipy.spatial import cKDTree
+
+    if main.position is None:
+        raise CaptureError("[colour_reference] kind = \"shared-albedo\" needs a mesh capture "
+                           "(world positions to match points across captures)", spec.path)
+    n = len(main)
+    idx = torch.linspace(0, n - 1, min(spec.points, n)).round().long()
+    pos = np.asarray(main.position[idx].detach().cpu().double())
+    obs = [main.radiance[idx].detach().cpu().double()]
+    var = [None if main.variance is None else main.variance[idx].detach().cpu().double()]
+    for k, o in enumerate(others):
+        name = names[k] if k < len(names) else f"capture {k + 1}"
+        if o.position is None:
+            raise CaptureError(f"[colour_reference] {name} has no mesh (world positions)",
+                               spec.path)
+        opos = np.asarray(o.position.detach().cpu().double())
+        tree = cKDTree(opos)
+        spacing = float(np.median(tree.query(opos, k=2)[0][:, 1]))
+        dist, j = tree.query(pos, k=1)
+        near = torch.as_tensor(dist <= 2.0 * spacing)
+        if int(near.sum()) < 50:
+            raise CaptureError(f"[colour_reference] {name}: only {int(near.sum())} of "
+                               f"{len(pos)} points are seen there; the captures must show the "
+                               "same object in the same world frame", spec.path)
+        j = torch.as_tensor(j)
+        nan = torch.full((len(pos), 3), float("nan"), dtype=torch.float64)
+        obs.append(torch.where(near[:, None], o.radiance[j].detach().cpu().double(), nan))
+        var.append(None if o.variance is None else
+                   torch.where(near[:, None], o.variance[j].detach().cpu().double(), nan))
+    variance = None if any(v is None for v in var) else torch.stack(var)
+    label = ", ".join(["this capture", *names])
+    return SharedAlbedoReference(
+        torch.stack(obs), main.normal[idx].detach().cpu().double(), variance=variance,
+        lmax=spec.lmax, target=0,
+        source=f"{len(obs)} captures sharing albedo ({label})")

@@ -43,7 +43,7 @@ CAPTURE_FORMAT = "brdfcap/1"
 KNOWN_KEYS: dict[str, set[str]] = {
     "": {"format", "name", "geometry", "camera", "lighting", "images", "noise", "material",
          "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor",
-         "paths", "texture_model"},
+         "paths", "texture_model", "colour_reference"},
     "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask",
                  "frame_check"},
     "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},

@@ -11,7 +11,9 @@ Conventions (frames, SH normalisation, units) are those of ``docs/conventions.md
 * ``M = diag(g) (c_t I + (1 − c_t) 1 wᵀ)`` and ``o`` (gain ``g``, contrast ``c_t`` mixing toward
   Rec. 709 luma ``w``, offset): A&S "estimated at the beginning of the inverse rendering
   process". **Identifiable only from a reference the capture provides** — a colour chart with
-  known reflectances (:class:`ColourReference`, :func:`estimate_colour_transform`). From the
+  known reflectances (:class:`ColourReference`, :func:`estimate_colour_transform`), or several
+  images of the object under different lighting sharing its albedo
+  (:class:`SharedAlbedoReference`: ``M`` up to each column's scale). From the
   object alone, a red pixel is "skin colour, red illumination, or an increased camera
   sensitivity in the red channel" (A&S, introduction): without a reference ``M = I, o = 0`` is
   *assumed*, and the results say so (``colour_transform.identified = false``).
@@ -58,7 +60,9 @@ from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights
 
-__all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "fit_aldrian_smith",
+__all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "SharedAlbedoReference",
+           "estimate_colour_transform_shared_albedo", "SHARED_ALBEDO_AMBIGUITY",
+           "fit_aldrian_smith",
            "fit_aldrian_smith_samples", "colour_transform_matrix", "fit_colour_transform",
            "estimate_colour_transform", "knn_edges", "LUMA", "TIED_SPECULAR_LMAX"]
 
@@ -145,6 +149,8 @@ class ColourTransform:
     source: str
     covariance: torch.Tensor | None = None
     rms: float | None = None
+    #: what the reference leaves unidentified (shared-albedo reference), else ``None``
+    ambiguity: str | None = None
 
     @property
     def M(self) -> torch.Tensor:  # noqa: N802 - the paper's symbol
@@ -163,6 +169,8 @@ class ColourTransform:
         out = {"identified": self.identified, "source": self.source,
                "gain": self.gain.tolist(), "contrast": self.contrast,
                "offset": self.offset.tolist(), "M": self.M.tolist(), "rms": self.rms}
+        if self.ambiguity:
+            out["not_identified"] = self.ambiguity
         if se is not None:
             out["stderr"] = {"gain": se[:3].tolist(), "contrast": float(se[3]),
                              "offset": se[4:].tolist()}
@@ -214,6 +222,226 @@ def estimate_colour_transform(ref: ColourReference) -> ColourTransform:
                            covariance=cov, rms=rms)
 
 
+
+@dataclass
+class SharedAlbedoReference:
+    """Several images of the same surface points (shared albedo) under different lighting.
+
+    ``observed[j, k]`` is the camera value of surface point ``k`` (normal ``normal[k]``) in
+    image ``j``; every image has its own unknown lighting and its own colour transform
+    ``(M_j, o_j)``; the diffuse albedo ``a_k`` is free per point and shared by the images:
+    ``observed[j, k] ≈ M_j ((U_k L_j) ∘ a_k) + o_j`` (A&S eq. 1 without the specular term: the
+    points should be matte, or their highlights masked with NaN). ``target`` is the image whose
+    transform the A&S fit uses. See :func:`estimate_colour_transform_shared_albedo` for what it
+    identifies.
+    """
+
+    observed: torch.Tensor  # (J, N, 3) camera values; NaN = not seen
+    normal: torch.Tensor  # (N, 3) unit normals, world frame
+    variance: torch.Tensor | None = None  # (J, N, 3) noise variance
+    lmax: int = 4  # band limit of each image's lighting (odd bands >= 3 unobservable)
+    target: int = 0
+    source: str = "images sharing albedo"
+
+
+#: What a shared-albedo reference leaves unidentified (stated in results and docs).
+SHARED_ALBEDO_AMBIGUITY = (
+    "each column of M is identified only up to a scale (the camera's gain per channel trades "
+    "with the light's colour and intensity, per image, and the albedo's colour with the "
+    "lights' colour): M is reported with a unit diagonal and the lighting carries the "
+    "per-channel gains; the cross-talk (off-diagonal M_rq/M_qq) and the offset o are "
+    "identified; A&S's gain and contrast are not reported")
+
+
+def estimate_colour_transform_shared_albedo(ref: SharedAlbedoReference
+                                            ) -> list[ColourTransform]:
+    r"""Colour transforms ``(M_j, o_j)`` of several images that share one albedo.
+
+    Model (A&S eq. 1, diffuse part, per image ``j`` and point ``k``): ``I_jk = M_j((U_k L_j) ∘
+    a_k) + o_j``, lighting ``L_j`` unknown per image (``ref.lmax``, the Lambertian filter folded
+    into ``U``, R&H 2001 eq. 8), albedo ``a_k`` free per point, ``M_j`` any 3x3 (A&S's
+    gain-and-contrast form is a special case). From one image a free albedo absorbs any ``M``;
+    with ``J ≥ 2`` images it cannot. The transformations that leave every image unchanged are
+    exactly ``M_j → M_j E_j``, ``L_j → L_j E_j⁻¹`` (``E_j`` diagonal, per image: the gain per
+    channel vs the light's colour) and ``a → D a``, ``L_j → L_j D⁻¹`` (``D`` diagonal, shared:
+    the albedo's colour vs the lights' colour) — provided the lights' colour varies with
+    direction (with white lights, ``L_j,c ∝ L_j`` for all c, any 3x3 ``D`` commutes with the
+    shading and the cross-talk is not identified either; the covariance then says so). Fixed
+    here by ``diag(M_j) = 1`` and ``L_0,00 = 1`` per channel; identified per image: the six
+    cross-talk ratios ``M_rq/M_qq`` and the offset ``o_j`` (:data:`SHARED_ALBEDO_AMBIGUITY`).
+
+    Alternating least squares (for fixed ``M, o`` the model is bilinear in ``L, a``; for fixed
+    ``L, a`` linear in ``M, o``), then Levenberg-Marquardt on the weighted least-squares cost,
+    the per-point ``3 × 3`` albedo blocks eliminated (Schur complement). Covariance of each
+    image's ``(vec M, o)`` (12 x 12, row-major ``M``; the fixed diagonal's rows are 0): ``σ²``
+    times the inverse Schur complement, ``σ²`` the residual variance without ``variance``,
+    ``max(1, χ²_red)`` with it.
+
+    Returns
+    -------
+    list of ColourTransform
+        One per image (general ``M``), ``identified = True``, the ambiguity in ``ambiguity``.
+    """
+    y = torch.as_tensor(ref.observed, dtype=_F64)
+    nrm = torch.nn.functional.normalize(torch.as_tensor(ref.normal, dtype=_F64), dim=-1)
+    if y.ndim != 3 or y.shape[-1] != 3 or nrm.ndim != 2 or y.shape[1] != nrm.shape[0] \
+            or nrm.shape[-1] != 3:
+        raise FitError(f"shared-albedo reference: observed {tuple(y.shape)} must be (J, N, 3) "
+                       f"with the N normals {tuple(nrm.shape)} (N, 3)")
+    J, N, _ = y.shape
+    if J < 2:
+        raise FitError("shared-albedo reference: needs at least 2 images of the same points "
+                       "under different lighting (from one image a free albedo absorbs any M)")
+    if not 0 <= ref.target < J:
+        raise FitError(f"shared-albedo reference: target image {ref.target} not in 0..{J - 1}")
+    ok = torch.isfinite(y).all(-1) & torch.isfinite(nrm).all(-1)[None]  # (J, N)
+    if ref.variance is not None:
+        var = torch.as_tensor(ref.variance, dtype=_F64).expand(J, N, 3)
+        ok &= torch.isfinite(var).all(-1) & (var > 0).all(-1)
+        w = torch.where(ok[..., None], 1.0 / var.clamp_min(1e-300), torch.zeros_like(y))
+    else:
+        w = ok[..., None].to(_F64).expand(J, N, 3).clone()
+    y = torch.where(ok[..., None], y, torch.zeros_like(y))
+    band = band_of_index(ref.lmax)
+    filt = diffuse_filter(ref.lmax)[band]
+    observ = filt.abs() > 1e-12 * float(filt.abs().max())
+    U = real_sh(nrm, ref.lmax)[:, observ] * filt[observ]  # (N, ko)
+    ko = U.shape[1]
+    if int((ok.sum(0) >= 2).sum()) < 3 * ko:
+        raise FitError(f"shared-albedo reference: only {int((ok.sum(0) >= 2).sum())} points "
+                       f"are seen in 2 or more images; need at least {3 * ko} for lighting to "
+                       f"l = {ref.lmax}")
+    # per image: L (ko, 3) channel-major, M (3, 3) row-major, o (3)
+    P = 3 * ko + 12
+    iL, iM, iO = slice(0, 3 * ko), slice(3 * ko, 3 * ko + 9), slice(3 * ko + 9, P)
+    free = torch.ones(J, P, dtype=torch.bool)
+    free[:, [3 * ko + 4 * c for c in range(3)]] = False  # diag(M_j) = 1: the gauge E_j
+    free[0, [c * ko for c in range(3)]] = False  # L_0,00 = 1 per channel: the gauge D
+    fidx = torch.nonzero(free.reshape(-1)).reshape(-1)
+
+    def unpack(th):  # th (J, P)
+        return (th[:, iL].reshape(J, 3, ko).transpose(1, 2), th[:, iM].reshape(J, 3, 3),
+                th[:, iO])
+
+    def predict(th, a):
+        L, M, o = unpack(th)
+        s = torch.einsum("nk,jkc->jnc", U, L)  # (J, N, 3) shading
+        f = s * a[None]
+        return torch.einsum("jcd,jnd->jnc", M, f) + o[:, None, :], s, f
+
+    def cost(th, a):
+        return float((w * (y - predict(th, a)[0]) ** 2).sum())
+
+    # --- start: M = I, o = 0; alternate lighting and albedo (each linear), then M, o ---
+    th = torch.zeros(J, P, dtype=_F64)
+    th[:, iM] = torch.eye(3, dtype=_F64).reshape(-1)
+    a = torch.full((N, 3), 0.5, dtype=_F64)
+    for _ in range(20):
+        L, M, o = unpack(th)
+        yy = torch.einsum("jcd,jnd->jnc", torch.linalg.inv(M), y - o[:, None, :])
+        for j in range(J):
+            for ch in range(3):
+                sw = w[j, :, ch:ch + 1].sqrt()
+                th[j, ch * ko:(ch + 1) * ko] = torch.linalg.lstsq(
+                    U * a[:, ch:ch + 1] * sw, yy[j, :, ch:ch + 1] * sw).solution[:, 0]
+        s = torch.einsum("nk,jkc->jnc", U, unpack(th)[0])
+        a = (w * s * yy).sum(0) / (w * s * s).sum(0).clamp_min(1e-300)
+        f = s * a[None]
+        for j in range(J):  # rows of M_j and o_j: linear least squares per channel
+            X = torch.cat([f[j], torch.ones(N, 1, dtype=_F64)], 1)
+            for c in range(3):
+                sw = w[j, :, c:c + 1].sqrt()
+                sol = torch.linalg.lstsq(X * sw, y[j, :, c:c + 1] * sw).solution[:, 0]
+                th[j, 3 * ko + 3 * c:3 * ko + 3 * c + 3] = sol[:3]
+                th[j, 3 * ko + 9 + c] = sol[3]
+        # back to the gauge: unit diagonal of M_j (scale into L_j), L_0,00 = 1 (into a)
+        L, M, o = unpack(th)
+        d = torch.diagonal(M, dim1=-2, dim2=-1)  # (J, 3)
+        if (d.abs() < 1e-12).any():
+            raise FitError("shared-albedo reference: a channel of the images carries no "
+                           "signal (M has a zero column)")
+        th[:, iM] = (M / d[:, None, :]).reshape(J, 9)
+        th[:, iL] = (L * d[:, None, :]).transpose(1, 2).reshape(J, 3 * ko)
+        L0 = th[0, [c * ko for c in range(3)]].clone()
+        if (L0.abs() < 1e-12).any():
+            raise FitError("shared-albedo reference: image 0's lighting has no constant term")
+        th[:, iL] = (unpack(th)[0] / L0).transpose(1, 2).reshape(J, 3 * ko)
+        a = a * L0
+
+    def system(th, a):
+        p, s, f = predict(th, a)
+        L, M, o = unpack(th)
+        r = y - p  # (J, N, 3)
+        Ja = M[:, None, :, :] * s[:, :, None, :]  # (J, N, c, d): ∂p_c/∂a_d
+        Jg = torch.zeros(J, N, 3, P, dtype=_F64)
+        Jg[..., iL] = (M[:, None, :, :, None] * a[None, :, None, :, None]
+                       * U[None, :, None, None, :]).reshape(J, N, 3, 3 * ko)
+        for c in range(3):
+            Jg[:, :, c, 3 * ko + 3 * c:3 * ko + 3 * c + 3] = f
+            Jg[:, :, c, 3 * ko + 9 + c] = 1.0
+        Jg = Jg * free[:, None, None, :]
+        Haa = torch.einsum("jncd,jnc,jnce->nde", Ja, w, Ja)
+        ra = torch.einsum("jncd,jnc->nd", Ja, w * r)
+        Hgg = torch.block_diag(*[torch.einsum("ncp,nc,ncq->pq", Jg[j], w[j], Jg[j])
+                                 for j in range(J)])
+        rg = torch.einsum("jncp,jnc->jp", Jg, w * r).reshape(-1)
+        Hga = torch.einsum("jncp,jnc,jncd->jpnd", Jg, w, Ja).reshape(J * P, N, 3)
+        return Hgg, rg, Haa, ra, Hga
+
+    def solve(Hgg, rg, Haa, ra, Hga, damp):
+        """Solve the normal equations, per-point albedo blocks eliminated (Schur complement)."""
+        Hg = Hgg + damp * torch.diag(torch.diagonal(Hgg))
+        dia = torch.diagonal(Haa, dim1=-2, dim2=-1)
+        # 1e-12 of the block's scale: keeps a point seen in one image invertible (its albedo
+        # is then free and the point carries no information, which is what this costs)
+        Ha = Haa + torch.diag_embed(damp * dia + 1e-12 * dia.mean(-1, keepdim=True) + 1e-300)
+        Hainv = torch.linalg.inv(Ha)
+        X = torch.einsum("nde,gne->gnd", Hainv, Hga)
+        S = Hg - torch.einsum("gnd,hnd->gh", Hga, X)
+        z = torch.einsum("nde,ne->nd", Hainv, ra)
+        rhs = rg - torch.einsum("gnd,nd->g", Hga, z)
+        Sf = S[fidx][:, fidx]
+        dg = torch.zeros(J * P, dtype=_F64)
+        dg[fidx] = torch.linalg.solve(Sf, rhs[fidx])
+        return dg, z - torch.einsum("gnd,g->nd", X, dg), Sf
+
+    cur, mu, converged = cost(th, a), 1e-4, False
+    for _ in range(100):
+        Hgg, rg, Haa, ra, Hga = system(th, a)
+        stepped = done = False
+        for _ in range(12):
+            dg, da, _ = solve(Hgg, rg, Haa, ra, Hga, mu)
+            th_n, a_n = th + dg.reshape(J, P), a + da
+            new = cost(th_n, a_n)
+            if new <= cur:
+                done = (cur - new) <= 1e-12 * max(cur, 1e-300)
+                th, a, cur, mu = th_n, a_n, new, max(mu / 10, 1e-12)
+                stepped = True
+                break
+            mu *= 10
+        if not stepped or done:
+            converged = True
+            break
+    Hgg, rg, Haa, ra, Hga = system(th, a)
+    _, _, Sf = solve(Hgg, rg, Haa, ra, Hga, 0.0)
+    n_obs = 3 * int(ok.sum())
+    dof = max(n_obs - 3 * N - int(fidx.numel()), 1)
+    chi2 = cur / dof
+    s2 = chi2 if ref.variance is None else max(1.0, chi2)
+    cov = torch.zeros(J * P, J * P, dtype=_F64)
+    cov[fidx[:, None], fidx[None, :]] = s2 * torch.linalg.inv(Sf)
+    _, M, o = unpack(th)
+    out = []
+    for j in range(J):
+        sel = torch.arange(j * P + 3 * ko, (j + 1) * P)
+        out.append(_GivenMatrix(
+            M[j].clone(), o[j].clone(), covariance=cov[sel[:, None], sel[None, :]].clone(),
+            source=(f"estimated from {ref.source} (image {j} of {J}, {N} points sharing "
+                    f"albedo, lighting to l = {ref.lmax} per image"
+                    + ("" if converged else "; not converged") + ")"),
+            rms=math.sqrt(cur / max(n_obs, 1)), ambiguity=SHARED_ALBEDO_AMBIGUITY))
+    return out
+
 def knn_edges(points: torch.Tensor, k: int = 6) -> torch.Tensor:
     """``(E, 2)`` undirected edges of the k-nearest-neighbour graph of ``points`` (``(N, 3)``)."""
     from scipy.spatial import cKDTree
@@ -257,6 +485,17 @@ class AldrianSmithFit:
     parameter_names: list[str]
     priors: dict = field(default_factory=dict)
     ambiguities: list[dict] = field(default_factory=list)
+    #: per κ_l: determined by the data (κ_0 is not with a free albedo: set to 0, stderr inf)
+    specular_low_determined: torch.Tensor | None = None
+
+    def _kappa_out(self) -> tuple[list, list]:
+        """κ_l and their standard errors for results.json, ``None`` where not determined."""
+        det = (torch.ones_like(self.specular_low, dtype=torch.bool)
+               if self.specular_low_determined is None else self.specular_low_determined)
+        val = [v if d else None for v, d in zip(self.specular_low.tolist(), det.tolist())]
+        se = [e if d and math.isfinite(e) else None
+              for e, d in zip(self.specular_low_stderr.tolist(), det.tolist())]
+        return val, se
 
     @property
     def lighting(self) -> torch.Tensor:
@@ -309,6 +548,7 @@ class AldrianSmithFit:
         """Keys for ``results.json``."""
         def fin(t):
             return [v if math.isfinite(v) else None for v in t.reshape(-1).tolist()]
+        kv, kse = self._kappa_out()
         return {"aldrian_smith": {
             "lighting_sh": self.lighting_radiance.tolist(),
             "diffuse_coefficients": self.lighting.tolist(),
@@ -318,8 +558,9 @@ class AldrianSmithFit:
             "texture_stderr": None if self.texture_stderr is None
             else fin(self.texture_stderr),
             "albedo_mean": self.albedo.mean(0).tolist(),
-            "specular_low_kappa": self.specular_low.tolist(),
-            "specular_low_kappa_stderr": fin(self.specular_low_stderr),
+            "specular_low_kappa": kv,
+            "specular_low_kappa_stderr": kse,
+            "specular_low_kappa_determined": [v is not None for v in kv],
             "specular_high": self.specular_high.tolist(),
             "specular_high_stderr": [fin(r) for r in self.specular_high_stderr],
             "colour_transform": self.colour.to_dict(), "iterations": self.iterations,
@@ -328,16 +569,20 @@ class AldrianSmithFit:
             "lighting": self.lighting_block(),
             "brdf": {"model": "aldrian-smith", "parameters": {
                 "albedo_mean": self.albedo.mean(0).tolist(),
-                "specular_kappa": self.specular_low.tolist()},
-                "stderr": {"specular_kappa": fin(self.specular_low_stderr)}},
+                "specular_kappa": kv},
+                "stderr": {"specular_kappa": kse}},
             "ambiguities": self.ambiguities}
 
     def summary(self) -> list[str]:
         """Report lines."""
-        k = ", ".join(f"{v:.4g} ± {e:.2g}" for v, e in zip(self.specular_low.tolist(),
-                                                         self.specular_low_stderr.tolist()))
+        kv, kse = self._kappa_out()
+        k = ", ".join(f"{v:.4g} ± {e:.2g}" if v is not None and e is not None else
+                      f"κ_{i} not determined (free albedo absorbs it)" if v is None else
+                      f"{v:.4g}" for i, (v, e) in enumerate(zip(kv, kse)))
         col = self.colour
-        cs = (f"colour transform {col.source}" if col.identified else
+        cs = (f"colour transform {col.source}"
+              + ("; M up to each column's scale (the lighting carries the per-channel gains)"
+                 if col.ambiguity else "") if col.identified else
               "colour transform NOT identified (no colour reference): M = I, o = 0 assumed; "
               "camera gain, light colour and object colour are confounded")
         unob = (f"; bands {self.unobservable_bands} unobservable (Lambertian Â_l = 0)"
@@ -359,6 +604,8 @@ def _colour_of(colour) -> ColourTransform:
                        "ColourReference (ColorChecker patches), a known (M, o) or None")
     if isinstance(colour, ColourReference):
         return estimate_colour_transform(colour)
+    if isinstance(colour, SharedAlbedoReference):
+        return estimate_colour_transform_shared_albedo(colour)[colour.target]
     if isinstance(colour, ColourTransform):
         return colour
     M, o = (torch.as_tensor(t, dtype=_F64) for t in colour)
@@ -382,17 +629,39 @@ def _contrast_of(M: torch.Tensor) -> float | None:
 
 
 class _GivenMatrix(ColourTransform):
-    """A given ``M`` not of A&S's gain/contrast form (any invertible 3x3)."""
+    """A colour transform with any invertible 3x3 ``M`` (not A&S's gain/contrast form).
 
-    def __init__(self, M, o):
+    ``covariance`` (when given) is over ``(vec M, o)``: 12 x 12, ``M`` row-major.
+    """
+
+    def __init__(self, M, o, covariance=None, source="given (general 3x3 M)", rms=None,
+                 ambiguity=None):
         super().__init__(gain=torch.ones(3, dtype=_F64), contrast=1.0, offset=o,
-                         identified=True, source="given (general 3x3 M)")
+                         identified=True, source=source, covariance=covariance, rms=rms,
+                         ambiguity=ambiguity)
         self._M = M
 
     @property
     def M(self) -> torch.Tensor:  # noqa: N802
-        """The given matrix."""
+        """The matrix."""
         return self._M
+
+    @property
+    def phi(self) -> torch.Tensor:
+        """``(vec M, o)``, ``M`` row-major."""
+        return torch.cat([self._M.reshape(-1), self.offset])
+
+    def to_dict(self) -> dict:
+        """``results.json`` block (``gain``, ``contrast``: null — not of A&S's form)."""
+        out = {"identified": self.identified, "source": self.source, "gain": None,
+               "contrast": None, "offset": self.offset.tolist(), "M": self.M.tolist(),
+               "rms": self.rms}
+        if self.covariance is not None:
+            se = torch.diagonal(self.covariance).clamp_min(0).sqrt()
+            out["stderr"] = {"M": se[:9].reshape(3, 3).tolist(), "offset": se[9:].tolist()}
+        if self.ambiguity:
+            out["not_identified"] = self.ambiguity
+        return out
 
 
 def _laplacian(edges: torch.Tensor, n: int) -> sp.csr_matrix:
@@ -431,9 +700,11 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
     texture_mean, texture_pcs : torch.Tensor, optional
         ``(N, 3)`` mean texture ``t̄`` and ``(P, N, 3)`` principal components ``T``. Without
         them the albedo is free per sample with the smoothness prior.
-    colour : ColourReference, ColourTransform, (M, o) or None
-        A colour reference (``M``, ``o`` and their covariance estimated first, step 1), a known
-        transform, or ``None``: ``M = I, o = 0`` *assumed* and reported as not identified.
+    colour : ColourReference, SharedAlbedoReference, ColourTransform, (M, o) or None
+        A colour reference (``M``, ``o`` and their covariance estimated first, step 1: chart
+        patches, or several images sharing the albedo — ``M`` then up to each column's scale,
+        :func:`estimate_colour_transform_shared_albedo`), a known transform, or ``None``:
+        ``M = I, o = 0`` *assumed* and reported as not identified.
     grayworld, simplicity : float
         Prior weights relative to the mean diagonal of the data term's normal matrix of the
         block they act on: ``λ_g Σ_c ||L_c − L̄||²`` (white light) and ``λ_s (||b||² +
@@ -574,6 +845,12 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     if kh:
         Pg[iX, iX] += (simplicity + 1e-12) * sX * torch.eye(3 * kh, dtype=_F64)
     Pg[iK, iK] += 1e-12 * torch.eye(nk, dtype=_F64)
+    if not texture:
+        # κ_0 is not identified with a free albedo: its constant κ_0 L_00,c Y_00 is absorbed
+        # exactly by a_k,c + κ_0 L_00,c Y_00 / (U_k L)_c, which a smoothness prior barely sees
+        # (measured: -0.298 ± 0.025 against 0.300 on quadrature renders). Pinned to 0 — the
+        # albedo then carries it — and reported not determined, never as a measurement.
+        Pg[iK.start, iK.start] += 1e8 * max(float(w.sum()), 1.0)
     mu_a = torch.zeros(A, dtype=_F64)
     edges_used = "none"
     lap = None
@@ -751,26 +1028,32 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
         cov_b = s2 * (Hinv_aa + X @ Sinv @ X.T)
         cov_gb = -s2 * Sinv @ X.T
     if col.covariance is not None:
-        # first-order propagation of φ = (g, c_t, o): dθ/dφ = −H⁻¹ Jᵀ W ∂(M f + o)/∂φ
+        # first-order propagation of φ = (g, c_t, o), or (vec M, o) for a general M:
+        # dθ/dφ = −H⁻¹ Jᵀ W ∂(M f + o)/∂φ
         phi = col.phi
-        D = torch.zeros(3 * N, 7, dtype=_F64)
-        for j in range(4):
-            h = 1e-6 * max(1.0, abs(float(phi[j])))
-            pp, pm = phi.clone(), phi.clone()
-            pp[j] += h
-            pm[j] -= h
-            dM = (colour_transform_matrix(pp[:3], float(pp[3]))
-                  - colour_transform_matrix(pm[:3], float(pm[3]))) / (2 * h)
-            D[:, j] = (pred_y @ dM.T).T.reshape(-1)
+        nphi = phi.numel()
+        D = torch.zeros(3 * N, nphi, dtype=_F64)
+        if isinstance(col, _GivenMatrix):
+            for c in range(3):
+                D[c * N:(c + 1) * N, 3 * c:3 * c + 3] = pred_y
+        else:
+            for j in range(4):
+                h = 1e-6 * max(1.0, abs(float(phi[j])))
+                pp, pm = phi.clone(), phi.clone()
+                pp[j] += h
+                pm[j] -= h
+                dM = (colour_transform_matrix(pp[:3], float(pp[3]))
+                      - colour_transform_matrix(pm[:3], float(pm[3]))) / (2 * h)
+                D[:, j] = (pred_y @ dM.T).T.reshape(-1)
         for c in range(3):
-            D[c * N:(c + 1) * N, 4 + c] = 1.0
+            D[c * N:(c + 1) * N, nphi - 3 + c] = 1.0
         D = D * ok.repeat(3)[:, None]
         rgD = (Jg * ww[:, None]).T @ D
         if texture:
             raD = (ja * ww[:, None]).T @ D
         else:
-            wD = w.T[:, :, None] * D.reshape(3, N, 7)  # (c, n, j)
-            raD = torch.einsum("cnj,cd,nd->dnj", wD, Mm, shade).reshape(3 * N, 7)
+            wD = w.T[:, :, None] * D.reshape(3, N, nphi)  # (c, n, j)
+            raD = torch.einsum("cnj,cd,nd->dnj", wD, Mm, shade).reshape(3 * N, nphi)
         dgD, dAD, *_ = joint_solve(Hgg, Haa, Hga, rgD, raD, 0.0)
         cov_g = cov_g + dgD @ col.covariance @ dgD.T
         if texture:
@@ -808,27 +1091,36 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
                            if texture else "NOT resolved (no grayworld prior, no texture "
                            "model): the light's colour is assumed carried by the albedo prior")},
            {"name": "camera gain vs light colour vs object colour",
-            "resolution": ("identified by " + col.source) if col.identified else
+            "resolution": ("identified by " + col.source
+                           + (f"; not identified: {col.ambiguity}" if col.ambiguity else ""))
+            if col.identified else
             ("NOT identified: no colour reference; M = I, o = 0 assumed, so the lighting "
              "carries the camera's gain and white balance and the offset is taken as 0")}]
     amb.append({"name": "specular DC (kappa_0) vs albedo level",
                 "resolution": "the tied specular DC κ_0 L_00 Y_00 is a constant; it is "
                 "separated from the diffuse DC only through the albedo's spatial variation "
                 + ("(the texture model's components): with a nearly uniform albedo only "
-                   "(albedo + κ_0)·L_00 is determined" if texture else
-                   "— a smooth free albedo can absorb it (an albedo change ∝ 1/shading), only "
-                   "the smoothness prior separates them; give a texture model for a reliable "
-                   "κ_0") + "; κ_1, κ_2 vary with r and separate well"})
+                   "(albedo + κ_0)·L_00 is determined; κ_1, κ_2 vary with r and separate well"
+                   if texture else
+                   "— NOT identified with a free albedo: the data are unchanged under "
+                   "κ_0 → κ_0 + δ, a_k,c → a_k,c − δ L_00,c Y_00 / (U_k L)_c (the smoothness "
+                   "prior barely sees that smooth change); κ_0 is set to 0 (the albedo carries "
+                   "the specular DC) and reported not determined; give a texture model to "
+                   "measure it; κ_1, κ_2 vary with r and are determined")})
     if unobservable:
         amb.append({"name": "odd lighting bands >= 3",
                     "resolution": f"bands {unobservable} unobservable from a Lambertian "
                     "surface (Â_l = 0); reported as 0 with no standard error"})
+    kse, kdet = se_g[iK].clone(), torch.ones(nk, dtype=torch.bool)
+    if not texture:
+        kse[0], kdet[0] = math.inf, False
     return AldrianSmithFit(
         lmax=lmax, lighting_radiance=Lfull, lighting_stderr=Lse, determined=observ.clone(),
         unobservable_bands=unobservable, albedo=alb, albedo_model=albedo_model,
         texture_coefficients=ta.clone() if texture else None,
         texture_stderr=torch.diagonal(cov_b).clamp_min(0).sqrt() if texture else None,
-        specular_low=kap.clone(), specular_low_stderr=se_g[iK],
+        specular_low=kap.clone(), specular_low_stderr=kse,
+        specular_low_determined=kdet,
         specular_high=xh.clone(), specular_high_stderr=se_g[iX].reshape(3, kh).T,
         colour=col, iterations=iters, converged=converged, prediction=pred,
         chi2_reduced=chi2, chi2_channels=chi2_c, noise_source=noise_source, covariance=cov,

@@ -37,6 +37,11 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
     if ill:
         lines.append(f"  ill-conditioned lighting bands: l = {', '.join(map(str, ill))}")
     lines.append(f"  model adequacy: {h['verdict'][1]}")
+    ct = (results.get("aldrian_smith") or {}).get("colour_transform")
+    if ct:  # which reference identified Aldrian & Smith's colour transform, or none
+        lines.append(f"  colour transform M, o: {ct.get('source')}"
+                     + (f"; not identified: {ct['not_identified']}"
+                        if ct.get("not_identified") else ""))
     gt = results.get("ground_truth") or {}
     det = [b for b in ((gt.get("lighting") or {}).get("bands") or [])
            if b.get("mean_z2") is not None and b["l"] not in ill]

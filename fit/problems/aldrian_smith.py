@@ -23,13 +23,20 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
     """Problem 4: Aldrian & Smith's photometric model (:mod:`brdfcap.fit.aldrian_smith`).
 
     Lighting to ``--lmax`` (any ``lmax >= 0``; odd bands >= 3 reported unobservable). The colour
-    transform counts as identified when the capture's ``[colour]`` ColorChecker correction was
-    applied at load (the views are then in the chart's working space, ``M = I``); otherwise it
-    is reported as not identified (``M = I, o = 0`` assumed). A ``[texture_model]`` gives the
+    transform is estimated from ``known.colour_reference`` (``[colour_reference]``: ColorChecker
+    patches, or other captures sharing the albedo), or counts as identified when the capture's
+    ``[colour]`` ColorChecker correction was applied at load (the views are then in the chart's
+    working space, ``M = I``); otherwise it is reported as not identified (``M = I, o = 0``
+    assumed). A ``[texture_model]`` gives the
     albedo model; without one the albedo is free per sample with the smoothness prior.
     """
     need_environment(known)
-    colour = None
+    colour = known.colour_reference
+    if colour is not None and known.colour_corrected:
+        raise FitError("capture.toml has both [colour] (a correction applied at load) and "
+                       "[colour_reference]; keep one: [colour_reference] alone lets "
+                       "aldrian-smith estimate M and o from the raw camera values",
+                       known.source)
     if known.colour_corrected:
         colour = ColourTransform(
             gain=torch.ones(3, dtype=torch.float64), contrast=1.0,
@@ -50,7 +57,11 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
            Estimate("albedo_mean", res.albedo.mean(0), None, "channel",
                     note="mean of the per-sample albedo: no standard error"),
            Estimate("specular_kappa", res.specular_low, res.specular_low_stderr, "band",
-                    note=note)]
+                    determined=res.specular_low_determined,
+                    note=note if res.specular_low_determined is None
+                    or bool(res.specular_low_determined.all()) else
+                    note + "; kappa_0 not determined with a free albedo (set to 0, the albedo "
+                    "carries the specular DC)")]
     return FitResult("aldrian-smith", est, res.prediction, res.to_results(),
                      summary=res.summary(), ambiguities=list(res.ambiguities))
 

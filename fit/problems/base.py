@@ -71,6 +71,10 @@ class Known:
     #: ``[texture_model]``: a linear albedo model with ``at(points) -> (mean, pcs)``
     #: (:class:`brdfcap.capture.texture_model.TextureModel`, loaded by the pipeline)
     texture_model: Any = None
+    #: ``[colour_reference]``: what identifies Aldrian & Smith's colour transform, a
+    #: ``ColourReference`` (ColorChecker patches) or ``SharedAlbedoReference`` (loaded by the
+    #: pipeline), else ``None``
+    colour_reference: Any = None
 
     @property
     def albedo(self) -> torch.Tensor | None:

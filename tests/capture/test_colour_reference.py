@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 import torch
 from brdfcap.capture.colour import colour_checker_reference
-from brdfcap.capture.colour_reference import colour_reference_from_image
+from brdfcap.capture.colour_reference import (
+    ColourReferenceSpec,
+    colour_reference_from_image,
+    colour_reference_spec,
+    shared_albedo_reference,
+)
 from brdfcap.fit.aldrian_smith import (
     ColourReference,
     colour_transform_matrix,
@@ -88,3 +93,58 @@ def test_auto_detection_finds_the_chart():
     ct = estimate_colour_transform(ColourReference(torch.as_tensor(auto.observed),
                                                    torch.as_tensor(auto.reference)))
     assert np.abs(ct.gain.numpy() / GAIN - 1).max() < 0.05
+
+
+@pytest.mark.parametrize("tab, match", [
+    ({"kind": "chart"}, "colour_reference.kind"),
+    ({"kind": "colorchecker"}, "checker_image"),
+    ({"kind": "colorchecker", "checker_image": "c.exr", "checker_boxes": [[1, 2, 3]]},
+     "checker_boxes"),
+    ({"kind": "shared-albedo"}, "colour_reference.captures"),
+    ({"kind": "shared-albedo", "captures": ["../b"], "points": 10}, "points"),
+    ({"kind": "shared-albedo", "captures": ["../b"], "checker_image": "c.exr"},
+     "unknown key"),
+])
+def test_colour_reference_spec_bad_input_one_line(tmp_path, tab, match):
+    """Each bad [colour_reference] gives one CaptureError naming the key and capture.toml."""
+    with pytest.raises(CaptureError, match=match) as e:
+        colour_reference_spec({"colour_reference": tab}, tmp_path, tmp_path / "capture.toml")
+    assert "capture.toml" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_colour_reference_spec_kinds(tmp_path):
+    """Both kinds parse, paths relative to capture.toml's folder; absent: None."""
+    assert colour_reference_spec({}, tmp_path) is None
+    s = colour_reference_spec({"colour_reference": {"kind": "colorchecker",
+                                                    "checker_image": "c.exr"}}, tmp_path)
+    assert s.checker_image == tmp_path / "c.exr" and s.checker_boxes == "auto"
+    s = colour_reference_spec({"colour_reference": {"kind": "shared-albedo",
+                                                    "captures": ["../b"], "lmax": 2}}, tmp_path)
+    assert s.captures == [tmp_path / "../b"] and s.lmax == 2 and s.points == 400
+
+
+def test_shared_albedo_points_matched_by_position():
+    """Points of this capture take the nearest sample of the other one; unseen ones are NaN."""
+    from types import SimpleNamespace
+
+    g = torch.Generator().manual_seed(0)
+    pos = torch.nn.functional.normalize(torch.randn(400, 3, generator=g, dtype=torch.float64),
+                                        dim=-1)
+
+    class S(SimpleNamespace):
+        def __len__(self):
+            return len(self.position)
+
+    main = S(position=pos, normal=pos, radiance=pos.abs(), variance=None)
+    half = pos[pos[:, 2] > 0]  # the other capture sees the upper hemisphere only
+    other = S(position=half + 1e-4, normal=half, radiance=2 * half.abs(), variance=None)
+    ref = shared_albedo_reference(main, [other], ColourReferenceSpec("shared-albedo", None,
+                                                                     points=400), ["b"])
+    assert ref.observed.shape == (2, 400, 3) and ref.variance is None
+    seen = torch.isfinite(ref.observed[1]).all(-1)
+    up = pos[:, 2] > 0
+    # every upper point is seen with its own value; far below the equator nothing is seen
+    # (within 2 sample spacings of the equator a neighbour's value is taken)
+    assert seen[up].all() and not seen[pos[:, 2] < -0.3].any()
+    assert torch.allclose(ref.observed[1][up], 2 * ref.observed[0][up])
+    assert ref.source == "2 captures sharing albedo (this capture, b)"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from brdfcap.fit.aldrian_smith import (
@@ -132,3 +134,34 @@ def test_grayworld_prior_and_free_albedo_are_finite_and_report_ambiguities():
     f0 = fit_aldrian_smith(n, r, img, grayworld=0.0, simplicity=1e-3, refine_iter=10)
     spread = lambda x: (x - x.mean(1, keepdim=True)).abs().mean()  # noqa: E731
     assert spread(f.lighting) < spread(f0.lighting)
+
+
+def test_free_albedo_kappa0_is_reported_not_determined(one_thread):
+    """Free albedo: κ_0 is not identified (the albedo absorbs κ_0 L_00 Y_00 / shading).
+
+    Measured before the fix on quadrature renders of a textured sphere (truth κ_0 = 0.30): the
+    smoothness prior returned κ_0 = −0.298 ± 0.025 (24σ off). Now κ_0 is pinned at 0, reported
+    not determined (null in results.json, "not determined" in the summary) and the ambiguity
+    names the exact transformation; κ_1 and κ_2 keep finite standard errors.
+    """
+    n, r, img, t = _scene(5, n=600)
+    f = fit_aldrian_smith(n, r, img, colour=(t["M"], t["o"]), grayworld=1e-3,
+                          simplicity=1e-3, refine_iter=10)
+    assert f.specular_low_determined.tolist() == [False, True, True]
+    assert float(f.specular_low[0]) == pytest.approx(0.0, abs=1e-6)
+    assert math.isinf(float(f.specular_low_stderr[0]))
+    assert torch.isfinite(f.specular_low_stderr[1:]).all()
+    res = f.to_results()
+    a = res["aldrian_smith"]
+    assert a["specular_low_kappa"][0] is None and a["specular_low_kappa_stderr"][0] is None
+    assert a["specular_low_kappa_determined"] == [False, True, True]
+    assert res["brdf"]["parameters"]["specular_kappa"][0] is None
+    assert "κ_0 not determined" in f.summary()[0]
+    amb = next(x for x in res["ambiguities"] if x["name"].startswith("specular DC"))
+    assert "NOT identified with a free albedo" in amb["resolution"]
+    assert "κ_0 → κ_0 + δ" in amb["resolution"]
+    # with a texture model the same data determine κ_0 (recovered to 1e-6, noise-free)
+    f = fit_aldrian_smith(n, r, img, texture_mean=t["tmean"], texture_pcs=t["T"],
+                          colour=(t["M"], t["o"]))
+    assert f.specular_low_determined.all()
+    assert (f.specular_low - t["kappa"]).abs().max() < 1e-6
