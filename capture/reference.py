@@ -31,6 +31,36 @@ Environment lighting (:func:`render_environment`)
       quadrature above applied to the full specular transfer ``f_s cos``.
     * **Mirror** (a Dirac lobe): ``ks · L(r)`` by bilinear lookup at ``r = 2(n·ωo)n − ωo``.
 
+    **Batches** (``method="auto"``, the default; ``docs/simulator.md#renderer-speed``) use two
+    faster rules where they apply, same integrand, different quadrature:
+
+    * **Cell quadrature** (specular lobes wider than 4 texels, ≥ 256 pixels, ``rel_tol ≥
+      1e-3``): a pyramid of the probe in solid-angle-correct form — level 0 the texels' ``k ×
+      k`` sub-cells, each coarser level 2 × 2 cells — storing per cell the integral
+      ``Φ = ∫ L dω`` and the centroid ``c`` of ``∫ |L̄| ω dω``. For every pixel the cells of a
+      partition of the sphere contribute ``f(n, c, ωo) Φ``, which is exact whenever the
+      transfer is linear over the cell, however the radiance is distributed inside it (a
+      sun-like texel sits at its cell's centroid). Starting from ~128 coarse cells, a cell is
+      replaced by its four children while it is wider than half the lobe's median radius near
+      the lobe (growing with the distance beyond one radius) or while ``|V − ΣV_children|``
+      exceeds a tenth of the pixel's tolerance; ``|V − ΣV_children| / 3`` (the rule is
+      ``O(h²)``) is that cell's error estimate and the pixel's estimate is their sum. Pixels
+      over the tolerance are redone with a four times stricter budget (twice); then 64 pixels
+      are re-rendered with a rule four times stricter again and the largest difference is
+      reported as ``check.max_rel_diff`` (``converged`` requires both to be within tolerance).
+      Lobe-sampling quadrature does not converge under such probes: it must find the few
+      bright texels by point samples.
+    * **Irradiance map** (Lambertian term, ≥ 2048 pixels, ``rel_tol ≥ 1e-4``, non-negative
+      probe): the texels above the 33rd-brightest value (when ≥ 10× the mean) are split off
+      as tents (their bilinear basis functions) and integrated per pixel with ``4 × 4``
+      sub-cells per quadrant (error estimate against ``2 × 2``); the clamped rest gives the
+      irradiance on a grid of normals (rows ``θ_i = π i/(R−1)``, poles included, × the
+      sub-cell columns) by the same texel sums as above, done per row as a circular
+      convolution over ``φ`` by FFT; pixels interpolate it (Keys cubic; taps past a pole
+      continue on the opposite meridian). On 256 pixels the map is checked against direct
+      quadrature: the order ``k`` by the Richardson estimate, the rows ``R = 65 … 513`` until
+      the interpolation error is below half the tolerance. Reported per term.
+
     The tolerance: per pixel, estimated error ≤ ``rel_tol · max(B⁺, floor)`` where ``B⁺`` is
     the same integral of ``|L|`` (``= B`` for any real, non-negative probe; for an SH
     reconstruction that rings negative it keeps the criterion finite) and ``floor`` is 1 % of
@@ -42,7 +72,9 @@ Lights (:func:`render_lights`)
     irradiance delivered to a surface facing the light (``docs/conventions.md``); a mirror
     reflects no distant point light into a pixel.
 
-Everything is torch, vectorised, float64, on the device of ``normal`` (CPU or CUDA).
+Everything is torch, vectorised, on the device of ``normal`` (CPU or CUDA): float64, except
+the cell quadrature's BRDF evaluations in float32 (at ``rel_tol ≥ 1e-3``, accumulated in
+float64).
 """
 
 from __future__ import annotations
