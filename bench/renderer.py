@@ -1,17 +1,26 @@
-"""Reference-renderer accuracy against wall time (issue #13, "what accuracy costs in time").
+"""Reference-renderer accuracy against time (issue #13, "what accuracy costs in time").
 
-A glossy sphere (Beckmann σ = 0.2, F0 = 0.9 Schlick, kd = 0.1) under a lat-long probe, seen by an
-orthographic camera from +x (``--size``² pixels, one ray per pixel): each row renders it with
-one tolerance and one probe resolution and reports the RMS and max relative error against a
-converged render (``rel_tol = 1e-4`` at the full probe resolution) and the wall time. The
-probe is ``../shared/reference/probes/grace.hdr`` when present (else a smooth synthetic one);
-lower resolutions are box-downsampled from it, so their rows also show what a coarser probe
-costs in accuracy.
+A glossy sphere (Beckmann σ = 0.2, F0 = 0.9 Schlick, kd = 0.1) under a lat-long probe, seen by
+six orthographic cameras (±x, ±y, ±z; ``--size``² pixels each, one ray per pixel, pixels with
+``n·ωo > 0.1``). Each row renders it with one method, tolerance and probe resolution and
+reports the RMS and max relative error on ``--ref-pixels`` pixels against an independent
+converged reference — brute-force texel quadrature of the BRDF's point evaluation over every
+texel of the full-resolution probe, ``k × k`` sub-cells per texel at ``k = 2`` and ``4``,
+Richardson-extrapolated — with the CPU and wall time per pixel. The probe is
+``../shared/reference/probes/grace.hdr`` when present (else a smooth synthetic one); lower
+resolutions are box-downsampled from it, so their rows also show what a coarser probe costs.
+
+Methods (``render_environment(method=...)``): ``quadrature`` is the per-pixel lobe quadrature
+(rendered on the reference pixels only: it is slow); ``auto`` is the irradiance map plus the
+cell quadrature. The last column projects the CPU time per pixel onto the issue's target
+(6 views of 256² ≈ 2.1e5 sphere pixels, two cores): a projection, not a measurement; run
+``--target`` to measure it (minutes on two cores).
 
 Usage::
 
     python bench/renderer.py                     # table on stdout
     python bench/renderer.py --markdown out.md   # also save it
+    python bench/renderer.py --target            # also render the target scene in full
 """
 
 from __future__ import annotations
@@ -23,15 +32,17 @@ import time
 from pathlib import Path
 
 import torch
-from brdfcap.capture.reference import render_environment
+from brdfcap.capture.reference import LatLongProbe, render_environment
 from brdfcap.fit.brdf import make_brdf
 
 PROBE = Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "probes" / "grace.hdr"
+MODEL = {"kd": [0.1] * 3, "f0": [0.9] * 3, "sigma": 0.2}
+VIEWS = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
 
 
 def _probe() -> tuple[torch.Tensor, str]:
     if PROBE.is_file():
-        from brdfcap.fit.envmap import read_envmap
+        from brdfcap.capture.probes import read_envmap
 
         return read_envmap(PROBE)[..., :3].double(), "grace.hdr"
     h, w = 128, 256
@@ -48,49 +59,109 @@ def _down(img: torch.Tensor, f: int) -> torch.Tensor:
     return img.reshape(h // f, f, w // f, f, c).mean((1, 3))
 
 
-def _sphere(size: int):
+def _sphere(size: int, view=(1.0, 0.0, 0.0)):
+    """Return normals and view directions of the unit sphere seen along ``view``."""
+    v = torch.tensor(view, dtype=torch.float64)
+    a = torch.tensor([0.0, 0.0, 1.0] if abs(v[2]) < 0.9 else [1.0, 0.0, 0.0],
+                     dtype=torch.float64)
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(a, v), dim=0)
+    e2 = torch.linalg.cross(v, e1)
     u = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2.2 - 1.1
     y, z = torch.meshgrid(u, -u, indexing="xy")
     r2 = y ** 2 + z ** 2
     hit = r2 < 1.0
-    n = torch.stack([torch.sqrt((1 - r2).clamp_min(0)), y, z], -1)[hit]
-    wo = torch.zeros_like(n)
-    wo[:, 0] = 1.0
-    keep = n[:, 0] > 0.1
+    x = torch.sqrt((1 - r2).clamp_min(0))
+    n = (x[..., None] * v + y[..., None] * e1 + z[..., None] * e2)[hit]
+    wo = v.expand_as(n).clone()
+    keep = (n * wo).sum(-1) > 0.1
     return n[keep], wo[keep]
+
+
+def _views(size: int):
+    parts = [_sphere(size, v) for v in VIEWS]
+    return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+
+
+def _brute(model, n, wo, img) -> torch.Tensor:
+    """Texel quadrature of ``f cos`` over every texel, k = 2 and 4, Richardson (O(k⁻²))."""
+    p = LatLongProbe(img)
+    out = {}
+    for k in (2, 4):
+        d, lw = p.quadrature(k)
+        acc = torch.zeros(n.shape[0], img.shape[2], dtype=torch.float64)
+        for i in range(n.shape[0]):
+            t = d.shape[0]
+            f = model.eval_cos(n[i].expand(t, 3), d, wo[i].expand(t, 3))
+            acc[i] = (f * lw).sum(0)
+        out[k] = acc
+    return out[4] + (out[4] - out[2]) / 3.0
+
+
+def _timed(fn):
+    c0, w0 = time.process_time(), time.perf_counter()
+    r = fn()
+    return r, time.process_time() - c0, time.perf_counter() - w0
 
 
 def main(argv=None) -> str:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=48)
+    ap.add_argument("--size", type=int, default=32, help="pixels per view side (default 32)")
+    ap.add_argument("--ref-pixels", type=int, default=24)
+    ap.add_argument("--tols", default="1e-2,3e-3")
     ap.add_argument("--markdown", type=Path)
+    ap.add_argument("--target", action="store_true",
+                    help="also render 6 views of 256² at the first tolerance reaching 0.5 %%")
     a = ap.parse_args(argv)
     img, name = _probe()
-    n, wo = _sphere(a.size)
-    m = make_brdf("beckmann", kd=[0.1] * 3, f0=[0.9] * 3, sigma=0.2)
-    t0 = time.perf_counter()
-    ref = render_environment(m, n, wo, img, rel_tol=1e-4, max_samples=1 << 16)
-    t_ref = time.perf_counter() - t0
+    m = make_brdf("beckmann", **MODEL)
+    n, wo = _views(a.size)
+    ref_idx = torch.linspace(0, n.shape[0] - 1, a.ref_pixels).long()
+    ref, t_ref, _ = _timed(lambda: _brute(m, n[ref_idx], wo[ref_idx], img))
+    tols = [float(t) for t in a.tols.split(",")]
+    n_target = _views(256)[0].shape[0]
     rows = []
-    for f in (4, 2, 1):
+
+    def err(b):
+        rel = ((b - ref).abs() / ref.abs().clamp_min(1e-12)).amax(-1)
+        return float(rel.pow(2).mean().sqrt()), float(rel.max())
+
+    for f in (1, 2):
         p = _down(img, f)
-        for tol in (1e-1, 3e-2, 1e-2, 3e-3, 1e-3):
-            t0 = time.perf_counter()
-            b, info = render_environment(m, n, wo, p, rel_tol=tol, max_samples=1 << 16,
-                                         return_info=True)
-            dt = time.perf_counter() - t0
-            rel = (b - ref).abs() / ref.abs().clamp_min(1e-12)
+        for tol in tols:
+            (b, info), cpu, wall = _timed(lambda: render_environment(
+                m, n, wo, p, rel_tol=tol, return_info=True, method="auto"))
             spec = info["terms"]["specular"]
-            rows.append((f"{p.shape[0]}x{p.shape[1]}", tol, float(rel.pow(2).mean().sqrt()),
-                         float(rel.max()), spec["samples_per_pixel_mean"], dt))
-    head = (f"Reference renderer: Beckmann sigma 0.2 sphere, {n.shape[0]} pixels, probe {name}; "
+            rows.append(("auto", f"{p.shape[0]}x{p.shape[1]}", tol, n.shape[0],
+                         *err(b[ref_idx]), spec["samples_per_pixel_mean"], cpu, wall))
+    p = img
+    for tol in tols[:2]:
+        (b, info), cpu, wall = _timed(lambda: render_environment(
+            m, n[ref_idx], wo[ref_idx], p, rel_tol=tol, return_info=True,
+            method="quadrature"))
+        spec = info["terms"]["specular"]
+        rows.append(("quadrature", f"{p.shape[0]}x{p.shape[1]}", tol, len(ref_idx), *err(b),
+                     spec["samples_per_pixel_mean"], cpu, wall))
+    head = (f"Reference renderer: Beckmann sigma 0.2 sphere, 6 views of {a.size}², probe {name}; "
             f"{platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} "
-            f"thread(s); converged render (rel_tol 1e-4, full probe) {t_ref:.1f} s.\n\n"
-            "| probe | rel_tol | RMS rel. error | max rel. error | lobe nodes/pixel | time (s) |\n"
-            "|---|---:|---:|---:|---:|---:|\n")
-    body = "".join(f"| {r[0]} | {r[1]:g} | {r[2]:.2e} | {r[3]:.2e} | {r[4]:.0f} | {r[5]:.2f} |\n"
-                   for r in rows)
+            f"thread(s), CPU only (no CUDA device here). Reference: brute-force texel "
+            f"quadrature on {len(ref_idx)} pixels ({t_ref:.0f} s CPU).\n\n"
+            "| method | probe | rel_tol | pixels | RMS rel. error | max rel. error | "
+            "spec. nodes/pixel | CPU s | wall s | CPU µs/pixel | target projected (s, 2 cores) |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n")
+    body = "".join(
+        f"| {r[0]} | {r[1]} | {r[2]:g} | {r[3]} | {r[4]:.2e} | {r[5]:.2e} | {r[6]:.0f} | "
+        f"{r[7]:.1f} | {r[8]:.1f} | {r[7] / r[3] * 1e6:.0f} | "
+        f"{r[7] / r[3] * n_target / 2:.0f} |\n" for r in rows)
     out = head + body
+    if a.target:
+        ok = [r for r in rows if r[0] == "auto" and r[1] == f"{img.shape[0]}x{img.shape[1]}"
+              and r[4] <= 5e-3]
+        tol = max(r[2] for r in ok) if ok else min(tols)
+        nt, wt = _views(256)
+        (_, info), cpu, wall = _timed(lambda: render_environment(m, nt, wt, img, rel_tol=tol,
+                                                                  return_info=True))
+        out += (f"\nTarget scene (6 views of 256², {nt.shape[0]} pixels, rel_tol {tol:g}): "
+                f"{wall:.1f} s wall, {cpu:.1f} s CPU; converged: {info['converged']}.\n")
     print(out)
     if a.markdown:
         a.markdown.write_text(out)
