@@ -490,14 +490,15 @@ def _half_ranges(split: torch.Tensor | None, s: int, e: int):
 
 
 def _accumulate(design, b, w, cs, chunk, split, live=None):
-    """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K) and their per-half copies.
+    """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K), their per-half copies, shared.
 
     One pass over the rows in chunks; each half's Gram from its own rows (so each row enters
     one product), the total is their sum. A shared design whose channels' weights are
     proportional (:func:`_weight_ratios`) gets one Gram for all channels, times
     ``α_c channel_scale²``; ``Aᵀ W b`` is always formed from each channel's own weights.
     Halves stored contiguously (``split`` sorted) are sliced, not copied. ``live``: the
-    design's columns that may be nonzero (:func:`_weighted_gram`).
+    design's columns that may be nonzero (:func:`_weighted_gram`). ``shared``: whether every
+    channel's (half) Gram is one Gram times a channel factor.
     """
     n, nch = b.shape
     halves = None
@@ -525,7 +526,8 @@ def _accumulate(design, b, w, cs, chunk, split, live=None):
                 halves[0][h, c] += _weighted_gram(ac, wh[:, c:c + 1], live) * (sc * sc)
                 halves[1][h, c] += (ac.T @ wb[:, c]) * sc
     gram, rhs = halves[0].sum(0), halves[1].sum(0)
-    return gram, rhs, halves if split is not None else None
+    shared = alpha is not None and a.ndim == 2  # every channel's Grams are one Gram, scaled
+    return gram, rhs, halves if split is not None else None, shared
 
 
 def _scatter_columns(cols, k, gram, rhs, halves):
@@ -613,7 +615,7 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     if callable(design) and n * kp <= MATERIALIZE_LIMIT:
         design = design(0, n)
     sp = None if split is None else split.to(dev).long()
-    gram, rhs, halves = _accumulate(design, b, w, cs, chunk, sp, live)
+    gram, rhs, halves, shared_gram = _accumulate(design, b, w, cs, chunk, sp, live)
     if cols is not None:  # back to all K columns (the dead ones exactly 0)
         gram, rhs, halves = _scatter_columns(cols, k, gram, rhs, halves)
     btwb = (w * b * b).sum(0)
@@ -720,6 +722,7 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         split_x = torch.zeros(2, k, nch, dtype=torch.float64, device=dev)
         split_cov = torch.zeros(2, nch, k, k, dtype=torch.float64, device=dev)
     band_sv: list[list[torch.Tensor]] = [[] for _ in range(int(band.max()) + 1)]
+    half_cache: dict = {}
     for c in range(nch):
         m2lp, beta, lam, s2, scale = best[c]
         ev, u, ps = eig_of(c, beta, k)
@@ -740,7 +743,13 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         logev[c] = -0.5 * m2lp
         if halves is not None:
             for h in (0, 1):
-                mh = pu.T @ halves[0][h, c] @ pu  # in the eigen-basis of the full problem
+                key = (owner[c], beta, h)
+                if shared_gram and key in half_cache:  # this half's Gram, scaled: same basis
+                    m0, c0 = half_cache[key]
+                    mh = m0 * (torch.diagonal(gram[c]).sum() / torch.diagonal(gram[c0]).sum())
+                else:
+                    mh = pu.T @ halves[0][h, c] @ pu  # in the eigen-basis of the full problem
+                    half_cache[key] = (mh, c)
                 mh = 0.5 * (mh + mh.T) + lam * torch.eye(k, dtype=torch.float64, device=dev)
                 ch = torch.linalg.cholesky(mh)
                 inv = torch.cholesky_inverse(ch)
