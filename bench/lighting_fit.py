@@ -212,7 +212,8 @@ def main(argv=None):
         return cold_child(args.threads)
     torch.set_num_threads(args.threads)
     rows = targets(args) if args.lmax is None else sweep(args)
-    head = (f"{args.threads} threads, torch {torch.__version__}, best of {args.repeat}; "
+    head = (f"{args.threads} threads, torch {torch.__version__}, best of {args.repeat} "
+            f"(target rows under 100k samples: of at least 3); "
             f"`python bench/lighting_fit.py{'' if args.lmax is None else ' --lmax ' + args.lmax}`")
     text = head + "\n\n" + "\n".join(rows) + "\n"
     print(text)
