@@ -33,12 +33,12 @@ from .conditioning import (
     suggest_lmax,
 )
 from .lighting import SHFit
-from .memory import check_memory
+from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights, restrict, solve_bayes, solve_wls
 
-__all__ = ["fit_lighting", "lighting_design", "internal_lmax", "SHRows", "INTERNAL_REL",
-           "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES"]
+__all__ = ["fit_lighting", "lighting_design", "internal_lmax", "SHRows", "LiveRows", "INTERNAL_REL",
+           "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES", "SH_TABLE_MEMORY"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -48,9 +48,14 @@ INTERNAL_LMAX_CAP = 24
 SPLIT_BLOCKS = 16
 
 
-#: Most entries (N × K, float64) of one kept table of SH rows (:class:`SHRows`): 512 MiB
-#: (~107k samples at the internal cap L = 24).
+#: Most entries (N × K, float64) of one kept table of SH rows (:class:`SHRows`) whatever the
+#: free memory: 512 MiB (~107k samples at the internal cap L = 24). :func:`fit_lighting` keeps
+#: larger tables while they fit in :data:`SH_TABLE_MEMORY` of the available memory.
 SH_TABLE_ENTRIES = 2 ** 26
+#: Fraction of the available memory (:func:`brdfcap.fit.memory.available_bytes`) the kept SH
+#: tables of one fit may take together: 6 views of 256² (309k samples) at L = 24 need 1.5 GB
+#: per direction set; without the table its rows are evaluated again on every pass.
+SH_TABLE_MEMORY = 0.125
 
 
 class SHRows:
@@ -77,13 +82,26 @@ class SHRows:
         return self.table[s:e, :k]
 
 
+def _shared_design(spec: BRDFSpec) -> bool:
+    """Whether every channel's design is one ``(N, K)`` design times a channel scale."""
+    kd, ks = spec.kd, spec.specular_scale
+    if spec.model == "lambertian" or not bool((ks != 0).any()) or not bool((kd != 0).any()):
+        return True
+    return bool((ks != 0).all()) and bool(torch.allclose(kd * ks[0], ks * kd[0], rtol=1e-14,
+                                                         atol=0.0))
+
+
 def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor | None,
-                    lmax: int, tables: tuple[SHRows, SHRows | None] | None = None):
+                    lmax: int, tables: tuple[SHRows, SHRows | None] | None = None,
+                    keep: int = 0):
     """Design of the lighting problem for ``spec`` (module doc).
 
     Returns ``(f, scale)``: ``f(start, stop)`` gives rows ``(n, K)`` (then channel ``c`` is
     ``scale[c] · f``) or ``(n, C, K)`` (``scale`` is ``None``). ``tables``: :class:`SHRows` of
-    ``normal`` and ``reflected`` to reuse across designs of several bandwidths.
+    ``normal`` and ``reflected`` to reuse across designs of several bandwidths. ``f.live``
+    ``(K,)`` marks the columns that can be nonzero; an ``(n, K)`` design also has
+    ``f.live_rows(start, stop)``, its live columns alone, kept in one table built on first use
+    when it has at most ``keep`` entries (:class:`LiveRows`).
     """
     if tables is None:
         tables = (SHRows(normal, 0), None if reflected is None else SHRows(reflected, 0))
@@ -96,10 +114,25 @@ def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tenso
     spec_on = spec.model != "lambertian" and bool((ks != 0).any())
     if spec_on and reflected is None:
         raise ValueError(f"a {spec.model} BRDF needs the reflected view directions")
-    if not spec_on:  # shared design, per-channel scale kd (see solve_wls(channel_scale=...))
-        return (lambda s, e: sh_n(s, e, lmax) * fd), kd
-    if not bool((kd != 0).any()):
-        return (lambda s, e: sh_r(s, e, lmax) * fs), ks
+    n = normal.shape[0]
+    live = (fd != 0) | (fs != 0)
+    if not spec_on or not bool((kd != 0).any()):
+        # shared design, per-channel scale kd (or ks): rows of one direction set times a filter
+        sh, filt, scale = (sh_n, fd, kd) if not spec_on else (sh_r, fs, ks)
+
+        def one(s: int, e: int) -> torch.Tensor:
+            return sh(s, e, lmax) * filt
+
+        return _tag(one, filt != 0, LiveRows(one, filt != 0, n, keep, sh, lmax, filt)), scale
+    if _shared_design(spec):
+        # kd = t ks in every channel (e.g. grey diffuse and specular): one design row shared
+        # by all channels, channel c scaled by ks[c] — one Gram instead of one per channel
+        t = kd[0] / ks[0]
+
+        def both(s: int, e: int) -> torch.Tensor:
+            return sh_n(s, e, lmax) * (fd * t) + sh_r(s, e, lmax) * fs
+
+        return _tag(both, live, LiveRows(both, live, n, keep)), ks
 
     def design(s: int, e: int) -> torch.Tensor:
         a = (sh_n(s, e, lmax) * fd)[:, None, :] * kd[None, :, None]
@@ -107,7 +140,74 @@ def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tenso
             a = a + (sh_r(s, e, lmax) * fs)[:, None, :] * ks[None, :, None]
         return a
 
-    return design, None
+    return _tag(design, live, None), None
+
+
+def _tag(design, live: torch.Tensor, live_rows):
+    """Attach ``live`` and ``live_rows`` (or nothing) to a design callable."""
+    design.live = live
+    if live_rows is not None:
+        design.live_rows = live_rows
+    return design
+
+
+class LiveRows:
+    """The live columns of an ``(N, K)`` design: rows ``s:e`` as ``(e - s, K_live)``.
+
+    A column whose filter is exactly 0 (odd Lambertian bands ``l ≥ 3``, R&H 2001 eq. 9) is
+    exactly 0 in every row: :func:`brdfcap.fit.solve.solve_bayes` forms and multiplies only
+    the others. With ``rows`` and ``filt`` (a design ``rows(s, e, lmax) * filt``) the live
+    columns, whole bands and so runs of adjacent columns, are copied run by run with the
+    filter applied (the same numbers, without forming the dead ones). When the
+    ``N × K_live`` entries are at most ``keep``, the first call builds one table (in chunks)
+    and every pass over the samples then slices it: the design is evaluated once per solve,
+    not once per pass.
+    """
+
+    def __init__(self, design, live: torch.Tensor, n: int, keep: int = 0, rows=None,
+                 lmax: int = 0, filt: torch.Tensor | None = None, chunk: int = 32768):
+        self.design, self.n, self.keep, self.chunk = design, n, keep, chunk
+        self.width = int(live.sum())
+        self.runs, start = [], None  # [start, stop) of each run of live columns
+        for i, v in enumerate(live.tolist() + [False]):
+            if v and start is None:
+                start = i
+            elif not v and start is not None:
+                self.runs.append((start, i))
+                start = None
+        self.rows, self.lmax, self.filt = rows, lmax, filt
+        self.table: torch.Tensor | None = None
+
+    def _rows_into(self, out: torch.Tensor | None, s: int, e: int) -> torch.Tensor:
+        """Rows ``s:e`` of the live columns, written into ``out`` (new when ``None``)."""
+        full = self.design(s, e) if self.rows is None else self.rows(s, e, self.lmax)
+        if self.rows is None and self.runs == [(0, full.shape[1])]:
+            if out is None:
+                return full
+            out.copy_(full)
+            return out
+        if out is None:
+            out = full.new_empty((e - s, self.width))
+        o = 0
+        for a, b in self.runs:
+            if self.rows is None:
+                out[:, o:o + b - a] = full[:, a:b]
+            else:
+                torch.mul(full[:, a:b], self.filt[a:b], out=out[:, o:o + b - a])
+            o += b - a
+        return out
+
+    def __call__(self, s: int, e: int) -> torch.Tensor:
+        """Rows ``s:e`` of the live columns."""
+        if self.table is None and 0 < self.n * self.width <= self.keep:
+            first = self._rows_into(None, 0, min(self.chunk, self.n))
+            self.table = first.new_empty((self.n, self.width))
+            self.table[: first.shape[0]] = first
+            for c in range(first.shape[0], self.n, self.chunk):
+                self._rows_into(self.table[c:c + self.chunk], c, min(c + self.chunk, self.n))
+        if self.table is not None:
+            return self.table[s:e]
+        return self._rows_into(None, s, e)
 
 
 def _apply(a: torch.Tensor, scale: torch.Tensor | None, x: torch.Tensor) -> torch.Tensor:
@@ -297,14 +397,38 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                  f"the Bayesian lighting fit at lmax = {lrep} ({k_req} coefficients per channel)",
                  n.device)
     split = _split_halves(n.shape[0], view, good)
-    tables = (SHRows(n), None if r is None else SHRows(r))  # SH rows evaluated once, sliced
+    # the solves see the samples grouped by half (each half's rows contiguous: its Gram is
+    # taken from slices, not copies); residuals go back to scan order for the adequacy checks
+    perm = inv = None
+    if not bool((split[1:] >= split[:-1]).all()):
+        perm = torch.argsort(split, stable=True).to(n.device)
+        inv = torch.argsort(perm)
+        n, b, w, split = n[perm], b[perm], w[perm], split[perm.to(split.device)]
+        r = None if r is None else r[perm]
+    b_scan = b if inv is None else b[inv]
+    # SH rows or the design evaluated once per solve and sliced, in tables up to
+    # SH_TABLE_MEMORY of the free memory: a design shared by the channels is kept itself (its
+    # live columns, LiveRows), else the SH rows of normals and reflected directions are
+    limit = max(SH_TABLE_ENTRIES, int(SH_TABLE_MEMORY * available_bytes(n.device)) // 8)
+    shared = _shared_design(spec)
+    per_table = 0 if shared else limit // (1 + (r is not None))
+    tables = (SHRows(n, per_table), None if r is None else SHRows(r, per_table))
+
+    def in_scan_order(sol):
+        if inv is not None:
+            sol.bayes.residual = sol.bayes.residual[inv]
+            sol.bayes.weighted_residual = sol.bayes.weighted_residual[inv]
+        return sol
 
     def solve_to(cands):
         band = band_of_index(cands[-1]).to(n.device)
-        design, cscale = lighting_design(spec, n, r, cands[-1], tables)
-        return solve_bayes(design, b, w, band, noise_known=noise_known, noise_source=src,
-                           chunk=chunk, channel_scale=cscale, split=split,
-                           bandwidths=cands), cscale
+        design, cscale = lighting_design(spec, n, r, cands[-1], tables, limit)
+        return in_scan_order(solve_bayes(design, b, w, band, noise_known=noise_known,
+                                         noise_source=src, chunk=chunk, channel_scale=cscale,
+                                         split=split, bandwidths=cands)), cscale
+
+    def scan(x):
+        return x if inv is None else x[inv]
 
     cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
     if lmax_internal is not None:
@@ -314,22 +438,23 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         # is not white noise — the data then carry more than a slope-2 spectrum would
         l0 = cap if auto else max(internal_lmax(spec, lrep, nsamp), lrep)
         full, cscale = solve_to([l0])
-        first = model_adequacy(full, b, w, noise_known=noise_known, view=view)
+        first = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
         if l0 < cap and (first["likely_causes"] or not first["adequate"]):
             full, cscale = solve_to(sorted({l0, (l0 + cap) // 2, cap}))
     lint = int(full.band.max())
     cands = [lint]
     band = band_of_index(lint).to(n.device)
-    design, _ = lighting_design(spec, n, r, lint, tables)
+    design, _ = lighting_design(spec, n, r, lint, tables, limit)
     if noise_model is not None and getattr(noise_model, "is_known", False):
-        pred = b - full.bayes.residual
+        pred = b_scan - full.bayes.residual
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
                                dtype=torch.float64, device=n.device)
-        w, src = noise_weights(b, var2)
+        w, src = noise_weights(b_scan, var2)
+        w = w if perm is None else w[perm]
         noise_known = True
-        full = solve_bayes(design, b, w, band, noise_known=True,
-                           noise_source=src + " (IRLS at the fit)", chunk=chunk,
-                           channel_scale=cscale, split=split, bandwidths=cands)
+        full = in_scan_order(solve_bayes(design, b, w, band, noise_known=True,
+                                         noise_source=src + " (IRLS at the fit)", chunk=chunk,
+                                         channel_scale=cscale, split=split, bandwidths=cands))
     filt = _band_filter(spec, lint)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)
@@ -340,7 +465,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     k = (lrep + 1) ** 2
     sol = restrict(full, k)
     rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps)
-    adequacy = model_adequacy(full, b, w, noise_known=noise_known, view=view)
+    adequacy = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
     widen2 = adequacy["widen"] ** 2
     s_k = infl.to(sol.band.device)[sol.band].sqrt().T  # (C, K) split-half (Birge) widening
     cov = sol.covariance * widen2 * s_k[:, :, None] * s_k[:, None, :]

@@ -409,80 +409,141 @@ class BayesExtras:
     split_covariance: torch.Tensor | None = None  # (2, C, K, K)
 
 
-#: The Gram is multiplied in this many column blocks, only on and below the diagonal
-#: (``(B+1)/2B`` of a full product; the upper triangle is its mirror).
-GRAM_BLOCKS = 4
-
-
-def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor) -> torch.Tensor:
+def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
+                   live: torch.Tensor | None = None) -> torch.Tensor:
     """``aᵀ diag(w) a`` (K, K) for a float64 block ``a`` (n, K) and weights ``wcol`` (n, 1).
 
     Columns that are identically zero in the block (e.g. the odd bands ``l ≥ 3`` of a
     Lambertian design, where ``Â_l = 0``; R&H 2001 eq. 9) contribute exact zeros and are not
-    multiplied; of the rest only the lower block triangle is (the Gram is symmetric).
+    multiplied: ``live`` (K,) bool names the others when the caller knows them (a design's
+    ``live`` attribute, :func:`brdfcap.fit.inverse_lighting.lighting_design`), else they are
+    found by scanning the block. One matrix product over the live columns (measured faster
+    than products of lower-triangle column blocks: thin blocks run below the BLAS's peak);
+    its lower triangle is mirrored so the Gram is exactly symmetric.
     """
     k = a.shape[1]
-    live = (a[:64] != 0).any(0)  # most columns show a nonzero in their first rows
-    if not bool(live.all()):
-        maybe = torch.nonzero(~live).flatten()
-        live[maybe] = (a[:, maybe] != 0).any(0)
+    if live is None:
+        live = (a[:64] != 0).any(0)  # most columns show a nonzero in their first rows
+        if not bool(live.all()):
+            maybe = torch.nonzero(~live).flatten()
+            live[maybe] = (a[:, maybe] != 0).any(0)
     nz = torch.nonzero(live).flatten()
-    g = torch.zeros(k, k, dtype=torch.float64, device=a.device)
     kz = int(nz.numel())
     if kz == 0:
-        return g
+        return torch.zeros(k, k, dtype=torch.float64, device=a.device)
     az = a if kz == k else a[:, nz]
-    awz = az * wcol
-    gz = g if kz == k else torch.zeros(kz, kz, dtype=torch.float64, device=a.device)
-    step = -(-kz // GRAM_BLOCKS)
-    for j in range(0, kz, step):
-        blk = awz[:, j:].T @ az[:, j:j + step]  # rows j.., columns j..j+step
-        gz[j:, j:j + step] = blk
-        gz[j:j + step, j + step:] = blk[step:].T
-    if kz < k:
-        g[nz[:, None], nz[None, :]] = gz
+    gz = (az * wcol).T @ az
+    gz = torch.tril(gz) + torch.tril(gz, -1).T
+    if kz == k:
+        return gz
+    g = torch.zeros(k, k, dtype=torch.float64, device=a.device)
+    g[nz[:, None], nz[None, :]] = gz
     return g
 
 
-def _accumulate(design, b, w, cs, chunk, split):
-    """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K) and their per-half copies.
+#: Channels whose weights equal channel 0's times a constant to this relative tolerance share
+#: one weighted Gram (scaled): the tolerance :func:`solve_bayes` already accepts to share an
+#: eigen-decomposition between channels whose Grams agree up to a scale.
+WEIGHT_RTOL = 1e-12
+
+
+def _weight_ratios(w: torch.Tensor) -> torch.Tensor | None:
+    """``(C,)`` factors ``α_c`` with ``w[:, c] = α_c w[:, 0]`` (to :data:`WEIGHT_RTOL`), or None.
+
+    Constant per-channel variances (a noise level per channel) and a variance shared by all
+    channels give proportional weights; then ``Aᵀ W_c A = α_c Aᵀ W_0 A`` and one Gram serves
+    every channel.
+    """
+    nch = w.shape[1]
+    if nch == 1:
+        return torch.ones(1, dtype=w.dtype, device=w.device)
+    w0 = w[:, 0]
+    s0 = w0.sum()
+    if not bool(s0 > 0):
+        return None
+    alpha = w.sum(0) / s0
+    if not bool(((w - w0[:, None] * alpha[None, :]).abs() <= WEIGHT_RTOL * w.abs()).all()):
+        return None
+    return alpha
+
+
+def _half_ranges(split: torch.Tensor | None, s: int, e: int):
+    """Rows of chunk ``s:e`` in each half, as ``(h, index)`` pairs.
+
+    ``index`` is a slice when ``split`` is sorted (halves contiguous: the rows are not
+    copied), else a boolean mask.
+    """
+    if split is None:
+        yield 0, slice(None)
+        return
+    part = split[s:e]
+    if bool((part[1:] >= part[:-1]).all()):
+        n0 = int((part == 0).sum())
+        for h, sl in ((0, slice(0, n0)), (1, slice(n0, e - s))):
+            if sl.stop > sl.start:
+                yield h, sl
+        return
+    for h in (0, 1):
+        rows = part == h
+        if bool(rows.any()):
+            yield h, rows
+
+
+def _accumulate(design, b, w, cs, chunk, split, live=None):
+    """Accumulate ``Aᵀ W A`` (C, K, K), ``Aᵀ W b`` (C, K), their per-half copies, shared.
 
     One pass over the rows in chunks; each half's Gram from its own rows (so each row enters
-    one product), the total is their sum. Shared design and weights: one Gram for all
-    channels, times ``channel_scale²``.
+    one product), the total is their sum. A shared design whose channels' weights are
+    proportional (:func:`_weight_ratios`) gets one Gram for all channels, times
+    ``α_c channel_scale²``; ``Aᵀ W b`` is always formed from each channel's own weights.
+    Halves stored contiguously (``split`` sorted) are sliced, not copied. ``live``: the
+    design's columns that may be nonzero (:func:`_weighted_gram`). ``shared``: whether every
+    channel's (half) Gram is one Gram times a channel factor.
     """
     n, nch = b.shape
     halves = None
-    shared_w = all(torch.equal(w[:, 0], w[:, c]) for c in range(1, nch))
+    alpha = _weight_ratios(w)
+    wb_all = w * b
     for s, e, a in _design_chunks(design, n, chunk):
         a = a.to(torch.float64)
         if halves is None:
             k = a.shape[-1]
             halves = (torch.zeros(2, nch, k, k, dtype=torch.float64, device=b.device),
                       torch.zeros(2, nch, k, dtype=torch.float64, device=b.device))
-        for h in ((0,) if split is None else (0, 1)):
-            if split is None:
-                ah, wh, bh = a, w[s:e], b[s:e]
-            else:
-                rows = split[s:e] == h
-                if not bool(rows.any()):
-                    continue
-                ah, wh, bh = a[rows], w[s:e][rows], b[s:e][rows]
-            wb = wh * bh
-            if ah.ndim == 2 and shared_w:
-                g1, r1 = _weighted_gram(ah, wh[:, :1]), ah.T @ wb  # (K, K), (K, C)
+        for h, rows in _half_ranges(split, s, e):
+            ah, wh, wb = a[rows], w[s:e][rows], wb_all[s:e][rows]
+            if ah.ndim == 2 and alpha is not None:
+                g1 = _weighted_gram(ah, wh[:, :1], live)  # (K, K)
+                r1 = ah.T @ wb  # (K, C)
                 for c in range(nch):
                     sc = 1.0 if cs is None else cs[c]
-                    halves[0][h, c] += g1 * (sc * sc)
+                    halves[0][h, c] += g1 * (alpha[c] * sc * sc)
                     halves[1][h, c] += r1[:, c] * sc
                 continue
             for c in range(nch):
                 ac = ah if ah.ndim == 2 else ah[:, c, :]
                 sc = 1.0 if cs is None else cs[c]
-                halves[0][h, c] += _weighted_gram(ac, wh[:, c:c + 1]) * (sc * sc)
+                halves[0][h, c] += _weighted_gram(ac, wh[:, c:c + 1], live) * (sc * sc)
                 halves[1][h, c] += (ac.T @ wb[:, c]) * sc
     gram, rhs = halves[0].sum(0), halves[1].sum(0)
-    return gram, rhs, halves if split is not None else None
+    shared = alpha is not None and a.ndim == 2  # every channel's Grams are one Gram, scaled
+    return gram, rhs, halves if split is not None else None, shared
+
+
+def _scatter_columns(cols, k, gram, rhs, halves):
+    """Grams and right-hand sides over columns ``cols`` placed into all ``k`` (zeros elsewhere)."""
+    ix = (cols[:, None], cols[None, :])
+    g = gram.new_zeros(gram.shape[:-2] + (k, k))
+    g[..., ix[0], ix[1]] = gram
+    r = rhs.new_zeros(rhs.shape[:-1] + (k,))
+    r[..., cols] = rhs
+    if halves is not None:
+        hg = halves[0].new_zeros(halves[0].shape[:-2] + (k, k))
+        hg[..., ix[0], ix[1]] = halves[0]
+        hr = halves[1].new_zeros(halves[1].shape[:-1] + (k,))
+        hr[..., cols] = halves[1]
+        halves = (hg, hr)
+    return g, r, halves
 
 
 def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torch.Tensor,
@@ -541,10 +602,22 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     dev = b.device
     k = int(band.shape[0])
     cs = None if channel_scale is None else channel_scale.to(torch.float64).to(dev)
-    if callable(design) and n * k <= MATERIALIZE_LIMIT:
+    live = getattr(design, "live", None)  # columns that may be nonzero, when the design says
+    cols = None  # the columns the passes over the samples form (None: all K)
+    if live is not None:
+        live = live.to(dev)
+        if callable(design) and getattr(design, "live_rows", None) is not None:
+            cols = torch.nonzero(live).flatten()
+            design, live = design.live_rows, None
+            if int(cols.numel()) == k:
+                cols = None
+    kp = k if cols is None else int(cols.numel())
+    if callable(design) and n * kp <= MATERIALIZE_LIMIT:
         design = design(0, n)
     sp = None if split is None else split.to(dev).long()
-    gram, rhs, halves = _accumulate(design, b, w, cs, chunk, sp)
+    gram, rhs, halves, shared_gram = _accumulate(design, b, w, cs, chunk, sp, live)
+    if cols is not None:  # back to all K columns (the dead ones exactly 0)
+        gram, rhs, halves = _scatter_columns(cols, k, gram, rhs, halves)
     btwb = (w * b * b).sum(0)
     grid = EVIDENCE_GRID.to(dev)
     mu, sd = SLOPE_PRIOR
@@ -624,11 +697,12 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     if halves is not None:
         halves = (halves[0][:, :, :k, :k], halves[1][:, :, :k])
     full_design = design
+    kp = k if cols is None else int((cols < k).sum())  # formed columns among the first k
     if callable(full_design):
         def design(s_, e_):
-            return full_design(s_, e_)[..., :k]
+            return full_design(s_, e_)[..., :kp]
     else:
-        design = full_design[..., :k]
+        design = full_design[..., :kp]
 
     coef = torch.zeros(k, nch, dtype=torch.float64, device=dev)
     x0 = torch.zeros_like(coef)
@@ -648,6 +722,7 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         split_x = torch.zeros(2, k, nch, dtype=torch.float64, device=dev)
         split_cov = torch.zeros(2, nch, k, k, dtype=torch.float64, device=dev)
     band_sv: list[list[torch.Tensor]] = [[] for _ in range(int(band.max()) + 1)]
+    half_cache: dict = {}
     for c in range(nch):
         m2lp, beta, lam, s2, scale = best[c]
         ev, u, ps = eig_of(c, beta, k)
@@ -668,7 +743,13 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         logev[c] = -0.5 * m2lp
         if halves is not None:
             for h in (0, 1):
-                mh = pu.T @ halves[0][h, c] @ pu  # in the eigen-basis of the full problem
+                key = (owner[c], beta, h)
+                if shared_gram and key in half_cache:  # this half's Gram, scaled: same basis
+                    m0, c0 = half_cache[key]
+                    mh = m0 * (torch.diagonal(gram[c]).sum() / torch.diagonal(gram[c0]).sum())
+                else:
+                    mh = pu.T @ halves[0][h, c] @ pu  # in the eigen-basis of the full problem
+                    half_cache[key] = (mh, c)
                 mh = 0.5 * (mh + mh.T) + lam * torch.eye(k, dtype=torch.float64, device=dev)
                 ch = torch.linalg.cholesky(mh)
                 inv = torch.cholesky_inverse(ch)
@@ -681,12 +762,13 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
                               .flip(0))
     # residual pass: exact RSS for χ², and the residual itself for the adequacy checks
     res = torch.zeros_like(b)
+    coef_p = coef if cols is None else coef[cols[:kp]]
     for s, e, a in _design_chunks(design, n, chunk):
         a = a.to(torch.float64)
         if a.ndim == 2:
-            pred = a @ (coef if cs is None else coef * cs)
+            pred = a @ (coef_p if cs is None else coef_p * cs)
         else:
-            pred = torch.einsum("nck,kc->nc", a, coef)
+            pred = torch.einsum("nck,kc->nc", a, coef_p)
         res[s:e] = torch.where(w[s:e] > 0, b[s:e] - pred, torch.zeros_like(pred))
     wres = res * w.sqrt()
     dof = (nuse.to(torch.float64) - trh).clamp_min(1.0)
