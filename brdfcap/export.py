@@ -8,6 +8,10 @@ per-pixel maps, the in-memory :class:`~brdfcap.reconstruct.geometry.Samples` and
 * ``lighting.exr``: the recovered SH lighting evaluated on a lat-long grid
   (:func:`brdfcap.fit.envmap.reconstruct_envmap`, frame in ``docs/sh.md``), windowed per band
   (Sloan 2008), with the SH order, window and frame in the EXR header (``brdfcap:*`` keys).
+* ``lighting.mitsuba.exr`` + ``lighting.mitsuba.xml`` / ``.json``: the same series evaluated on
+  the texel grid of Mitsuba 3's ``envmap`` emitter, and that emitter with the ``to_world``
+  placing it in our world frame (:func:`mitsuba_envmap_directions`; the two lat-long layouts
+  differ by a mirror, so the EXR is resampled rather than rotated).
 * ``material.mitsuba.xml`` / ``material.mitsuba.json``: a Mitsuba 3 BSDF (``diffuse``,
   ``roughplastic``, ``roughconductor`` or their smooth forms ``plastic``/``conductor``) as XML
   and as the dict ``mitsuba.load_dict`` takes.
@@ -62,12 +66,15 @@ from brdfcap.core.atomic import write_json_atomic, write_text_atomic
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.fit.brdf_models import BRDFSpec, brdf_value
 from brdfcap.fit.envmap import FRAME_DESCRIPTION, WINDOWS, reconstruct_envmap, sh_window
+from brdfcap.fit.sh import band_of_index, real_sh
 
 __all__ = ["EXPORTS", "GLTF_SCHEMA_PATH", "EquivalentMicrofacet", "material_from_results",
            "equivalent_microfacet", "lighting_latlong", "write_lighting_exr",
            "mitsuba_bsdf_dict", "mitsuba_bsdf_xml", "gltf_brdf", "gltf_material",
-           "gltf_conversion_error", "validate_gltf", "write_maps", "view_names", "export_results",
-           "load_results"]
+           "gltf_conversion_error", "validate_gltf", "MITSUBA_ENVMAP_TO_WORLD",
+           "mitsuba_envmap_directions", "lighting_latlong_mitsuba", "mitsuba_envmap_xml",
+           "mitsuba_envmap_dict", "write_lighting_mitsuba", "write_maps", "view_names",
+           "export_results", "load_results"]
 
 #: What ``brdfcap export --only`` accepts, in the order they are written.
 EXPORTS = ("lighting", "mitsuba", "gltf")
@@ -365,6 +372,104 @@ def write_lighting_exr(results: dict, path: str | Path, height: int = 128, width
     return write_image(path, img, attributes=attrs)
 
 
+#: ``to_world`` of the exported Mitsuba ``envmap`` emitter: a rotation by +90° about x taking
+#: Mitsuba's envmap frame (local +y up) to ours (world +z up): local ``(x, y, z)`` → world
+#: ``(x, −z, y)``. Row-major 4×4.
+MITSUBA_ENVMAP_TO_WORLD = ((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, -1.0, 0.0), (0.0, 1.0, 0.0, 0.0),
+                           (0.0, 0.0, 0.0, 1.0))
+
+MITSUBA_FRAME_DESCRIPTION = (
+    "Mitsuba 3 envmap texel grid, emitter local frame +y up: row v <-> theta = pi*v/(H-1) from "
+    "local +y (rows 0 and H-1 at the poles), column u <-> phi = 2*pi*(u+0.5)/W, local direction "
+    "(sin phi sin theta, cos theta, -cos phi sin theta); to_world = rotate x by +90 deg, so "
+    "world direction = (sin phi sin theta, cos phi sin theta, cos theta) in the brdfcap world "
+    "frame (+z up); pixels hold radiance arriving from that direction"
+)
+
+
+def mitsuba_envmap_directions(height: int, width: int) -> torch.Tensor:
+    r"""World directions ``(H, W, 3)`` that Mitsuba 3's ``envmap`` reads each texel at.
+
+    Mitsuba 3 (``src/emitters/envmap.cpp``, ``direction_to_uv`` / ``eval_spectrum``) maps a
+    local direction ``v`` to ``u = atan2(v_x, −v_z)/2π``, ``t = acos(v_y)/π`` and interpolates
+    bilinearly with texel ``(row j, column i)`` at ``t = j/(H−1)`` and
+    ``u = (i + ½)/W`` (a half-texel shift; the last column wraps to the first). Our lat-long
+    (``docs/sh.md``) is +z up with φ counter-clockwise from +x seen from above; Mitsuba's φ runs
+    clockwise about its up axis, so no rotation of our image matches: the texels are evaluated
+    afresh at the directions ``to_world · v`` (:data:`MITSUBA_ENVMAP_TO_WORLD`).
+    """
+    theta = math.pi * torch.arange(height, dtype=torch.float64) / (height - 1)
+    phi = 2.0 * math.pi * (torch.arange(width, dtype=torch.float64) + 0.5) / width
+    st, ct = torch.sin(theta)[:, None], torch.cos(theta)[:, None]
+    local = torch.stack([torch.sin(phi)[None] * st, ct.expand(-1, width),
+                         -torch.cos(phi)[None] * st], -1)
+    r = torch.tensor(MITSUBA_ENVMAP_TO_WORLD, dtype=torch.float64)[:3, :3]
+    return local @ r.T
+
+
+def lighting_latlong_mitsuba(results: dict, height: int = 128, width: int = 256,
+                             window: str = "hann", path: str | Path | None = None
+                             ) -> tuple[np.ndarray, dict]:
+    """Return the recovered SH lighting on Mitsuba 3's envmap grid and its EXR metadata.
+
+    The grid is that of :func:`mitsuba_envmap_directions`.
+
+    Same coefficients and window as :func:`lighting_latlong`; the image is meant for an
+    ``envmap`` emitter whose ``to_world`` is :data:`MITSUBA_ENVMAP_TO_WORLD`
+    (``lighting.mitsuba.xml``).
+    """
+    _, attrs = lighting_latlong(results, 2, 2, window, path)  # validates, builds metadata
+    light = results["lighting"]
+    c = torch.as_tensor(light["coefficients"], dtype=torch.float64)
+    lmax = int(attrs["brdfcap:sh_lmax"])
+    c = c * sh_window(window, lmax)[band_of_index(lmax)][:, None]
+    y = real_sh(mitsuba_envmap_directions(height, width), lmax)
+    attrs["brdfcap:latlong_frame"] = MITSUBA_FRAME_DESCRIPTION
+    attrs["brdfcap:mitsuba_to_world"] = " ".join(
+        f"{v:g}" for row in MITSUBA_ENVMAP_TO_WORLD for v in row)
+    return (y @ c).numpy(), attrs
+
+
+def mitsuba_envmap_xml(filename: str = "lighting.mitsuba.exr",
+                       emitter_id: str = "brdfcap_lighting") -> str:
+    """Return the Mitsuba 3 XML ``<emitter type="envmap">`` of the lighting, with ``to_world``."""
+    m = " ".join(f"{v:g}" for row in MITSUBA_ENVMAP_TO_WORLD for v in row)
+    return ("<!-- brdfcap export: recovered SH lighting; brdfcap world frame (+z up), the "
+            "to_world rotation maps Mitsuba's y-up envmap frame onto it (docs/exports.md) -->\n"
+            f'<emitter type="envmap" id={quoteattr(emitter_id)}>\n'
+            f"    <string name=\"filename\" value={quoteattr(filename)}/>\n"
+            f'    <transform name="to_world">\n        <matrix value="{m}"/>\n'
+            "    </transform>\n</emitter>\n")
+
+
+def mitsuba_envmap_dict(filename: str = "lighting.mitsuba.exr") -> dict:
+    """Return the emitter of :func:`mitsuba_envmap_xml` as JSON-able data.
+
+    ``to_world`` is the row-major 4×4 list; ``mitsuba.load_dict`` needs it wrapped:
+    ``d["to_world"] = mi.ScalarTransform4f(d["to_world"])``.
+    """
+    return {"type": "envmap", "filename": filename,
+            "to_world": [list(row) for row in MITSUBA_ENVMAP_TO_WORLD]}
+
+
+def write_lighting_mitsuba(results: dict, out_dir: str | Path, height: int = 128,
+                           width: int = 256, window: str = "hann", results_path=None
+                           ) -> list[Path]:
+    """Write ``lighting.mitsuba.exr`` and its emitter ``lighting.mitsuba.{xml,json}``."""
+    out = Path(out_dir)
+    img, attrs = lighting_latlong_mitsuba(results, height, width, window, results_path)
+    notes = ["load with: d = json.load(f)['emitter']; d['to_world'] = "
+             "mi.ScalarTransform4f(d['to_world']); file names are relative to this file",
+             f"SH lmax {attrs['brdfcap:sh_lmax']}, window {window}",
+             "radiance in the units of the capture's images (linear Rec.709)"]
+    if attrs["brdfcap:scale_fixing"]:
+        notes.append(f"scale: {attrs['brdfcap:scale_fixing']}")
+    return [write_image(out / "lighting.mitsuba.exr", img, attributes=attrs),
+            write_text_atomic(out / "lighting.mitsuba.xml", mitsuba_envmap_xml()),
+            write_json_atomic(out / "lighting.mitsuba.json",
+                              {"emitter": mitsuba_envmap_dict(), "notes": notes})]
+
+
 def view_names(capture) -> list[str]:
     """File stems of a capture's views (``000``, ``light_012``, …) for map file names."""
     return [Path(str(v.info.get("file") or f"view{i:03d}")).stem
@@ -450,7 +555,9 @@ def export_results(results_dir: str | Path, out_dir: str | Path,
 
     if "lighting" in only:
         attempt("lighting", lambda: [write_lighting_exr(results, out / "lighting.exr", height,
-                                                        width, window, rpath)])
+                                                        width, window, rpath),
+                                     *write_lighting_mitsuba(results, out, height, width,
+                                                             window, rpath)])
     spec = None
     if "mitsuba" in only or "gltf" in only:
         def _spec():

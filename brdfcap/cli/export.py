@@ -1,8 +1,9 @@
 """``brdfcap export RESULTS OUT``: renderer-ready files from a finished run (docs/exports.md).
 
-Lighting as a lat-long EXR, the material as a Mitsuba 3 BSDF (XML and dict) and a glTF 2.0
-material; ``--maps`` also re-runs reconstruct and fit of the run's capture (same options) to
-write per-pixel normal and albedo EXRs of every view.
+Lighting as a lat-long EXR (our frame, and resampled for Mitsuba's envmap with its emitter),
+the material as a Mitsuba 3 BSDF (XML and dict) and a glTF 2.0 material; ``--maps`` also
+re-runs reconstruct and fit of the run's capture (same options) to write per-pixel normal and
+albedo EXRs of every view.
 """
 
 from __future__ import annotations
