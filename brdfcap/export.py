@@ -19,6 +19,8 @@ per-pixel maps, the in-memory :class:`~brdfcap.reconstruct.geometry.Samples` and
   ``brdfcap/schemas/gltf-material.schema.json``, with the conversion error in its ``extras``.
 * ``maps/<view>_normal.exr``, ``maps/<view>_albedo.exr``: per-pixel world-frame normals and
   albedo of every view (NaN where no sample).
+* ``maps/albedo_vertices.ply``: the mesh with per-vertex linear albedo (barycentric-weighted
+  mean of the per-pixel albedo) and vertex normals (:func:`write_vertex_ply`).
 
 Parameter mapping (derivations in ``docs/exports.md#parameter-mapping``)
 -----------------------------------------------------------------------
@@ -62,7 +64,7 @@ import numpy as np
 import torch
 
 from brdfcap.capture.images import write_image
-from brdfcap.core.atomic import write_json_atomic, write_text_atomic
+from brdfcap.core.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.fit.brdf_models import BRDFSpec, brdf_value
 from brdfcap.fit.envmap import FRAME_DESCRIPTION, WINDOWS, reconstruct_envmap, sh_window
@@ -74,6 +76,7 @@ __all__ = ["EXPORTS", "GLTF_SCHEMA_PATH", "EquivalentMicrofacet", "material_from
            "gltf_conversion_error", "validate_gltf", "MITSUBA_ENVMAP_TO_WORLD",
            "mitsuba_envmap_directions", "lighting_latlong_mitsuba", "mitsuba_envmap_xml",
            "mitsuba_envmap_dict", "write_lighting_mitsuba", "write_maps", "view_names",
+           "pixel_albedo", "vertex_albedo", "write_vertex_ply", "VERTEX_PLY_FLOATS",
            "export_results", "load_results"]
 
 #: What ``brdfcap export --only`` accepts, in the order they are written.
@@ -476,6 +479,105 @@ def view_names(capture) -> list[str]:
             for i, v in enumerate(capture.views)]
 
 
+def pixel_albedo(samples, fit) -> np.ndarray | None:
+    """Per-sample albedo ``kd × measured / predicted`` ``(N, C)``; ``None`` for ``brdf-map``.
+
+    The fitted albedo (``albedo`` or ``kd`` estimate, else 1) corrected by each sample's
+    residual: exact for a Lambertian model, the diffuse-dominated estimate otherwise; NaN where
+    the prediction is zero.
+    """
+    if getattr(fit, "measurement", None) is not None:
+        return None
+    pred = fit.prediction.detach().cpu().numpy()
+    rad = samples.radiance.cpu().numpy()
+    kd = np.ones(rad.shape[1])
+    for e in fit.estimates:
+        if e.quantity in ("albedo", "kd") and e.value.numel() == rad.shape[1]:
+            kd = e.value.cpu().numpy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.abs(pred) > 1e-12, rad / pred, np.nan) * kd
+
+
+def vertex_albedo(mesh, samples, albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex albedo ``(V, C)`` and weight ``(V,)`` from per-sample albedo ``(N, C)``.
+
+    Each sample (a pixel's hit point on triangle ``t``) adds its albedo to the three vertices of
+    ``t`` with its barycentric weights; a vertex's albedo is the weighted mean, its weight the
+    sum of weights (≈ the number of pixels that saw it). NaN where no sample reached a vertex.
+    """
+    if samples.triangle is None or samples.position is None:
+        raise BrdfcapError("the samples carry no hit triangles (not a mesh capture): no "
+                           "per-vertex maps")
+    tri = samples.triangle.cpu().numpy()
+    pos = samples.position.cpu().numpy()
+    ok = (tri >= 0) & np.isfinite(albedo).all(-1)
+    tri, pos, alb = tri[ok], pos[ok], albedo[ok]
+    f = mesh.faces[tri]
+    a, b, c = (mesh.vertices[f[:, i]] for i in range(3))
+    v0, v1, v2 = b - a, c - a, pos - a  # barycentric coordinates (Ericson 2005, §3.4)
+    d00, d01, d11 = (v0 * v0).sum(-1), (v0 * v1).sum(-1), (v1 * v1).sum(-1)
+    d20, d21 = (v2 * v0).sum(-1), (v2 * v1).sum(-1)
+    den = d00 * d11 - d01 * d01
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wb = np.where(den > 0, (d11 * d20 - d01 * d21) / den, 1 / 3)
+        wc = np.where(den > 0, (d00 * d21 - d01 * d20) / den, 1 / 3)
+    w = np.clip(np.stack([1 - wb - wc, wb, wc], -1), 0.0, None)
+    w = w / np.maximum(w.sum(-1, keepdims=True), 1e-300)
+    n_v = mesh.vertices.shape[0]
+    weight = np.bincount(f.reshape(-1), w.reshape(-1), minlength=n_v)
+    acc = np.stack([np.bincount(f.reshape(-1), (w * alb[:, ch:ch + 1]).reshape(-1),
+                                minlength=n_v) for ch in range(alb.shape[1])], -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(weight[:, None] > 0, acc / weight[:, None], np.nan)
+    return out, weight
+
+
+#: Vertex properties of ``albedo_vertices.ply`` after ``x y z nx ny nz red green blue``.
+VERTEX_PLY_FLOATS = ("albedo_r", "albedo_g", "albedo_b", "albedo_weight")
+
+
+def write_vertex_ply(path: str | Path, mesh, albedo: np.ndarray, weight: np.ndarray) -> Path:
+    """Write the mesh with per-vertex normals and albedo as a binary little-endian PLY.
+
+    Vertex properties: ``x y z`` (world frame, the mesh's units), ``nx ny nz`` (the unit vertex
+    normals the fit used), ``red green blue`` (uchar: the albedo sRGB-encoded and clipped to
+    [0, 1], for viewers; 0 where unseen), ``albedo_r albedo_g albedo_b`` (float32: linear albedo
+    in the capture's working colour space, NaN where no pixel saw the vertex) and
+    ``albedo_weight`` (sum of the barycentric weights of the pixels that saw it); faces as
+    ``vertex_indices``.
+    """
+    import colour  # only here: the display encoding of the viewer colours
+
+    alb = np.asarray(albedo, np.float64)
+    if alb.shape[1] == 1:
+        alb = np.repeat(alb, 3, 1)
+    alb = alb[:, :3]
+    shown = np.nan_to_num(np.clip(colour.models.eotf_inverse_sRGB(np.clip(alb, 0, 1)), 0, 1))
+    vdt = np.dtype([(n, "<f4") for n in ("x", "y", "z", "nx", "ny", "nz")]
+                   + [(n, "u1") for n in ("red", "green", "blue")]
+                   + [(n, "<f4") for n in VERTEX_PLY_FLOATS])
+    v = np.empty(mesh.vertices.shape[0], vdt)
+    for i, n in enumerate("xyz"):
+        v[n] = mesh.vertices[:, i]
+        v["n" + n] = mesh.vertex_normals[:, i]
+    for i, n in enumerate(("red", "green", "blue")):
+        v[n] = np.round(shown[:, i] * 255).astype(np.uint8)
+    for i, n in enumerate(VERTEX_PLY_FLOATS[:3]):
+        v[n] = alb[:, i]
+    v["albedo_weight"] = weight
+    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    fa = np.empty(mesh.faces.shape[0], fdt)
+    fa["n"] = 3
+    fa["i"] = mesh.faces
+    props = "".join(f"property {'uchar' if vdt[n] == np.uint8 else 'float'} {n}\n"
+                    for n in vdt.names)
+    header = ("ply\nformat binary_little_endian 1.0\ncomment brdfcap per-vertex albedo: linear, "
+              "capture working colour space (docs/exports.md)\n"
+              f"element vertex {len(v)}\n{props}element face {len(fa)}\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    return write_bytes_atomic(path, header.encode("ascii") + v.tobytes() + fa.tobytes())
+
+
 def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, int]],
                names: list[str] | None = None, one_camera: bool = False) -> list[Path]:
     """Write per-pixel world-frame normal and albedo EXRs of every view (NaN off the samples).
@@ -492,16 +594,7 @@ def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, 
     pix = samples.pixel.cpu().numpy()
     nrm = samples.normal.cpu().numpy()
     meas = getattr(fit, "measurement", None)
-    ratio = None
-    if meas is None:
-        pred = fit.prediction.detach().cpu().numpy()
-        rad = samples.radiance.cpu().numpy()
-        kd = np.ones(rad.shape[1])
-        for e in fit.estimates:
-            if e.quantity in ("albedo", "kd") and e.value.numel() == rad.shape[1]:
-                kd = e.value.cpu().numpy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(np.abs(pred) > 1e-12, rad / pred, np.nan) * kd
+    ratio = pixel_albedo(samples, fit)
     written = []
     if meas is not None:  # one per-pixel map for the whole capture (brdf-map)
         written.append(write_image(out / "albedo.exr", np.asarray(meas.albedo_map, np.float32)))

@@ -7,6 +7,7 @@ import math
 
 import jsonschema
 import numpy as np
+import open3d as o3d
 import OpenImageIO as oiio
 import pytest
 import torch
@@ -200,8 +201,38 @@ def test_export_cli_on_a_run(tiny_template, tmp_path):
     # per-pixel albedo (fitted albedo × measured/predicted) scatters around 1
     a = read_pixels(sorted((out / "maps").glob("*_albedo.exr"))[0])[0]
     assert abs(float(np.nanmedian(a)) - 1.0) < 0.05
+    _check_vertex_ply(out, json.loads((res / "results.json").read_text()))
     r = CliRunner().invoke(main, ["export", str(tmp_path / "nowhere"), str(out)])
     assert r.exit_code == 1 and "no results.json here" in r.output
+
+
+def _check_vertex_ply(out, results):
+    """``maps/albedo_vertices.ply`` of a mesh capture, read back by open3d's own PLY reader."""
+    ply = out / "maps" / "albedo_vertices.ply"
+    tm = o3d.io.read_triangle_mesh(str(ply))
+    assert len(tm.vertices) == results["geometry"]["mesh"]["vertices"]
+    assert len(tm.triangles) == results["geometry"]["mesh"]["triangles"]
+    # the tiny capture is a unit sphere at the origin: outward unit normals, world frame
+    pos, nrm = np.asarray(tm.vertices), np.asarray(tm.vertex_normals)
+    assert np.allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-5)
+    assert ((nrm * pos / np.linalg.norm(pos, axis=1, keepdims=True)).sum(1) > 0.98).all()
+    pc = o3d.t.io.read_point_cloud(str(ply))
+    alb = np.concatenate([pc.point[k].numpy() for k in ("albedo_r", "albedo_g", "albedo_b")], 1)
+    w = pc.point["albedo_weight"].numpy()[:, 0]
+    seen = w > 0
+    assert 0.2 * len(w) < seen.sum() < len(w)  # some vertices face no camera
+    assert np.isfinite(alb[seen]).all() and np.isnan(alb[~seen]).all()
+    # the fitted albedo (fixed to 1: lighting and albedo both unknown) ...
+    fitted = np.asarray(results["brdf"]["parameters"]["albedo"], float)
+    assert np.allclose(np.median(alb[seen], 0), fitted, atol=0.05)
+    # ... and the weighted vertex mean is the mean of the per-pixel albedo EXRs of the export
+    # (each pixel's barycentric weights sum to 1)
+    pix = np.concatenate([read_pixels(p)[0].reshape(-1, 3)
+                          for p in sorted((out / "maps").glob("*_albedo.exr"))])
+    pix = pix[np.isfinite(pix).all(1)]
+    vmean = (w[seen, None] * alb[seen]).sum(0) / w[seen].sum()
+    assert np.allclose(vmean, pix.mean(0), rtol=1e-4)
+    assert abs(w.sum() - len(pix)) < 1e-3 * len(pix)
 
 
 def test_export_maps_of_a_directional_capture(tmp_path):
@@ -219,6 +250,7 @@ def test_export_maps_of_a_directional_capture(tmp_path):
     assert r.exit_code == 0, r.output
     assert "skipped lighting" in r.output  # directional lights: no SH lighting to export
     assert not list((out / "maps").glob("*_normal.exr"))
+    assert not (out / "maps" / "albedo_vertices.ply").exists()  # no mesh
     n = read_pixels(out / "maps" / "normal.exr")[0]
     ok = np.isfinite(n).all(-1)
     assert ok.sum() > 500 and np.allclose(np.linalg.norm(n[ok], axis=-1), 1.0, atol=1e-3)
