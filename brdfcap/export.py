@@ -124,10 +124,16 @@ def material_from_results(results: dict, path: str | Path | None = None) -> BRDF
     Raises
     ------
     BrdfcapError
-        The run's BRDF has no parametric form (``sh-radial``, ``sh-isotropic``, …).
+        The run's BRDF has no parametric form (``sh-radial``, ``sh-isotropic``, …), or it was not
+        measured at all (albedo fixed to 1 to fix the albedo × lighting scale).
     """
     brdf = results.get("brdf") or {}
     model, par = brdf.get("model"), brdf.get("parameters") or {}
+    if str(par.get("albedo_source", "")).startswith("fixed"):
+        raise BrdfcapError("the run did not measure the material: its albedo was fixed to 1 "
+                           "(lighting and albedo both unknown, scale absorbed into the "
+                           "lighting); give [material] albedo in capture.toml or run "
+                           "'--problem brdf' for a material to export", path)
     if model == "lambertian":
         return BRDFSpec("lambertian", kd=_rgb(par.get("albedo", par.get("kd")), "albedo", path))
     if model == "lambertian+phong":  # per-pixel map (brdf-map): the median albedo
@@ -622,6 +628,17 @@ def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, 
     return written
 
 
+def _material_origin(results: dict) -> str:
+    """Where the exported material comes from: fitted by the run, or given in the capture."""
+    brdf = results.get("brdf") or {}
+    src = str(brdf.get("source") or "")
+    if "[material]" in src:
+        return f"given, not measured: {src}"
+    detail = src.removeprefix("fitted").strip()
+    problem = (results.get("fit") or {}).get("problem", "?")
+    return f"fitted by 'brdfcap run --problem {problem}'" + (f" {detail}" if detail else "")
+
+
 def export_results(results_dir: str | Path, out_dir: str | Path,
                    only: tuple[str, ...] = EXPORTS, height: int = 128, width: int = 256,
                    window: str = "hann") -> dict[str, list[str]]:
@@ -657,16 +674,20 @@ def export_results(results_dir: str | Path, out_dir: str | Path,
             nonlocal spec
             spec = material_from_results(results, rpath)
             return spec
+        origin = _material_origin(results)
         if "mitsuba" in only:
             def _mitsuba():
                 s = _spec()
                 d, notes = mitsuba_bsdf_dict(s)
                 return [write_text_atomic(out / "material.mitsuba.xml", mitsuba_bsdf_xml(s)),
                         write_json_atomic(out / "material.mitsuba.json",
-                                          {"bsdf": d, "notes": notes})]
+                                          {"bsdf": d, "source": origin, "notes": notes})]
             attempt("mitsuba", _mitsuba)
         if "gltf" in only:
-            attempt("gltf", lambda: [write_json_atomic(out / "material.gltf",
-                                                       gltf_material(spec or _spec()))])
+            def _gltf():
+                doc = gltf_material(spec or _spec())
+                doc["materials"][0]["extras"]["brdfcap"]["source"] = origin
+                return [write_json_atomic(out / "material.gltf", doc)]
+            attempt("gltf", _gltf)
     write_json_atomic(out / "export.json", {"results": str(rpath), **written})
     return written

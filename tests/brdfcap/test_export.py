@@ -20,6 +20,7 @@ from brdfcap.cli import main
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.export import (
     equivalent_microfacet,
+    export_results,
     gltf_brdf,
     gltf_material,
     material_from_results,
@@ -99,6 +100,10 @@ def test_material_from_results_names_what_cannot_be_exported():
     assert spec.model == "phong" and spec.s == 30.0
     with pytest.raises(BrdfcapError, match="sh-radial.*--problem brdf"):
         material_from_results({"brdf": {"model": "sh-radial", "parameters": {}}}, "r.json")
+    with pytest.raises(BrdfcapError, match="did not measure the material"):
+        material_from_results({"brdf": {"model": "lambertian", "parameters": {
+            "albedo": [1.0] * 3,
+            "albedo_source": "fixed to 1 (scale absorbed into the lighting)"}}})
     with pytest.raises(BrdfcapError, match="not finite"):
         material_from_results({"brdf": {"model": "lambertian",
                                         "parameters": {"albedo": [float("nan")] * 3}}})
@@ -188,10 +193,14 @@ def test_export_cli_on_a_run(tiny_template, tmp_path):
     out = tmp_path / "exp"
     r = CliRunner().invoke(main, ["export", str(res), str(out), "--maps"])
     assert r.exit_code == 0, r.output
-    for f in ("lighting.exr", "material.mitsuba.xml", "material.mitsuba.json", "material.gltf",
-              "export.json"):
+    for f in ("lighting.exr", "lighting.mitsuba.exr", "lighting.mitsuba.xml", "export.json"):
         assert (out / f).is_file(), f
-    validate_gltf(json.loads((out / "material.gltf").read_text()))
+    # lighting and albedo both unknown: the albedo was fixed to 1, so there is no measured
+    # material to hand to a renderer (a white diffuse material would be made up)
+    assert not (out / "material.gltf").exists() and not (out / "material.mitsuba.xml").exists()
+    assert "skipped mitsuba: the run did not measure the material" in r.output
+    manifest = json.loads((out / "export.json").read_text())
+    assert any(s.startswith("gltf: the run did not measure") for s in manifest["skipped"])
     normals = sorted((out / "maps").glob("*_normal.exr"))
     assert len(normals) == 2
     n = read_pixels(normals[0])[0]
@@ -259,3 +268,23 @@ def test_export_maps_of_a_directional_capture(tmp_path):
     doc = json.loads((out / "material.gltf").read_text())
     validate_gltf(doc)
     assert doc["materials"][0]["extras"]["brdfcap"]["model"] == "phong"
+
+
+def test_material_exports_say_whether_the_material_was_measured(tmp_path):
+    res = tmp_path / "res"
+    res.mkdir()
+    given = {"capture": "t", "lighting": None, "fit": {"problem": "lighting"},
+             "brdf": {"model": "phong", "source": "capture.toml [material] (known)",
+                      "parameters": {"kd": [0.3] * 3, "ks": [0.2] * 3, "s": 20.0}}}
+    (res / "results.json").write_text(json.dumps(given))
+    export_results(res, tmp_path / "a", only=("mitsuba", "gltf"))
+    assert json.loads((tmp_path / "a" / "material.mitsuba.json").read_text())["source"] \
+        .startswith("given, not measured")
+    fitted = dict(given, fit={"problem": "brdf"},
+                  brdf=dict(given["brdf"], source="fitted (known distant lights)"))
+    (res / "results.json").write_text(json.dumps(fitted))
+    export_results(res, tmp_path / "b", only=("gltf",))
+    doc = json.loads((tmp_path / "b" / "material.gltf").read_text())
+    validate_gltf(doc)
+    assert doc["materials"][0]["extras"]["brdfcap"]["source"] == \
+        "fitted by 'brdfcap run --problem brdf' (known distant lights)"
