@@ -1,4 +1,4 @@
-"""Every key of ``results.json`` is documented and in the schema (issue #16, results format).
+"""Every key of ``results.json`` (and every quantity of ``coefficients.csv``) is documented.
 
 A small capture runs through every ``--problem``; for each ``results.json``, every key that the
 schema lists (all top-level keys and their children, deeper where the schema describes the
@@ -156,6 +156,16 @@ def check_results(results: dict, name: str) -> int:
     return len(listed)
 
 
+def undocumented_quantities(csv_text: str, doc: str) -> list[str]:
+    """``coefficients.csv`` quantities that its section of results-format.md does not name."""
+    section = doc.split("## coefficients.csv", 1)[1].split("\n## ", 1)[0]
+    section = re.sub(r"```.*?```", "", section, flags=re.S)  # the example block
+    named = set(re.findall(r"`([^`]+)`", section))
+    names = {ln.split(",", 1)[0] for ln in csv_text.splitlines()[1:] if ln}
+    return sorted(q for q in names
+                  if q not in named and re.sub(r"_p\d+$", "_p<p>", q) not in named)
+
+
 def test_the_check_can_fail():
     schema = load_results_schema()
     r = {"format": "brdfcap-results/1", "lighting": None, "brdf": {"model": "m",
@@ -164,6 +174,9 @@ def test_the_check_can_fail():
          "undocumented_block": {"a": 1}}
     listed, unlisted = schema_keys(r, schema, schema)
     assert unlisted == ["fit.new_key", "undocumented_block"]
+    doc = "## coefficients.csv\n- `quantity`: `lighting`, `rho_lpq_p<p>`\n## next"
+    csv = "quantity,index\nlighting,0\nrho_lpq_p3,1\nnew_thing,\n"
+    assert undocumented_quantities(csv, doc) == ["new_thing"]
     assert "brdf.parameters" in listed and "brdf.parameters.x" not in listed  # open object
     rows = doc_rows("## results.json\n| key | meaning |\n|---|---|\n"
                     "| `lighting.lmax`, `.sh` | x |\n| `fit` | `n_samples` and more |\n## next")
@@ -205,6 +218,9 @@ def test_every_problem_writes_only_documented_schema_keys(tmp_path):
         results = json.loads((out / "results.json").read_text())
         assert results["fit"]["problem"] == problem
         assert check_results(results, problem) > 40
+        missing = undocumented_quantities((out / "coefficients.csv").read_text(),
+                                          DOC.read_text())
+        assert not missing, f"{problem}: coefficients.csv quantities not documented: {missing}"
     # a raw capture adds its linearisation chain to every image record
     (d / "raw.toml").write_text(scene_text(
         extra='[camera_raw]\neffects = ["colour_matrix", "white_balance", "cfa", '
