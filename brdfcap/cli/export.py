@@ -59,15 +59,18 @@ def maps_of_run(results: dict, out: Path, results_path: Path) -> list[Path]:
 @click.argument("results", type=click.Path(path_type=Path))
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option("--only", "only", type=click.Choice(EXPORTS), multiple=True,
-              help="Write only these exports (repeatable; default: all that the run allows).")
+              help="Write only these exports (repeatable; default: all that the run allows). "
+                   "lighting: lighting.exr and the Mitsuba emitter lighting.mitsuba.{exr,xml,"
+                   "json}; mitsuba: material.mitsuba.{xml,json}; gltf: material.gltf.")
 @click.option("--maps", is_flag=True,
               help="Also write per-pixel normal and albedo EXRs of every view and, for a mesh "
                    "capture, the mesh with per-vertex albedo and normals (PLY); re-runs "
                    "reconstruct and fit of the run's capture.")
 @click.option("--size", type=(click.IntRange(2, 16384), click.IntRange(2, 32768)),
-              default=(128, 256), show_default=True, help="Lat-long lighting EXR height, width.")
+              default=(128, 256), show_default=True, metavar="H W",
+              help="Height and width of the lat-long lighting EXRs.")
 @click.option("--window", type=click.Choice(list(WINDOWS)), default="hann", show_default=True,
-              help="Per-band SH window against ringing in lighting.exr (Sloan 2008).")
+              help="Per-band SH window against ringing in the lighting EXRs (Sloan 2008).")
 @click.option("--debug", "debug_local", is_flag=True, help="Show tracebacks.")
 @click.pass_obj
 def export_cmd(obj: CliState, results: Path, out: Path, only: tuple[str, ...], maps: bool,
