@@ -15,6 +15,7 @@ per-pixel maps, the in-memory :class:`~brdfcap.reconstruct.geometry.Samples` and
 * ``material.mitsuba.xml`` / ``material.mitsuba.json``: a Mitsuba 3 BSDF (``diffuse``,
   ``roughplastic``, ``roughconductor`` or their smooth forms ``plastic``/``conductor``) as XML
   and as the dict ``mitsuba.load_dict`` takes.
+* ``scene.mitsuba.xml``: both of the above around a unit sphere, ready to render.
 * ``material.gltf``: a glTF 2.0 document with one metallic-roughness material, valid against
   ``brdfcap/schemas/gltf-material.schema.json``, with the conversion error in its ``extras``.
 * ``maps/<view>_normal.exr``, ``maps/<view>_albedo.exr``: per-pixel world-frame normals and
@@ -75,7 +76,8 @@ __all__ = ["EXPORTS", "GLTF_SCHEMA_PATH", "EquivalentMicrofacet", "material_from
            "mitsuba_bsdf_dict", "mitsuba_bsdf_xml", "gltf_brdf", "gltf_material",
            "gltf_conversion_error", "validate_gltf", "MITSUBA_ENVMAP_TO_WORLD",
            "mitsuba_envmap_directions", "lighting_latlong_mitsuba", "mitsuba_envmap_xml",
-           "mitsuba_envmap_dict", "write_lighting_mitsuba", "write_maps", "view_names",
+           "mitsuba_envmap_dict", "write_lighting_mitsuba", "mitsuba_scene_xml", "write_maps",
+           "view_names",
            "pixel_albedo", "vertex_albedo", "write_vertex_ply", "VERTEX_PLY_FLOATS",
            "export_results", "load_results"]
 
@@ -628,6 +630,34 @@ def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, 
     return written
 
 
+def mitsuba_scene_xml(spec: BRDFSpec, width: int = 256, height: int = 256) -> str:
+    """Return a Mitsuba 3 scene: a unit sphere of the material under the exported lighting.
+
+    World frame as everywhere in brdfcap (+z up); the camera looks at the sphere from −y.
+    Uses ``lighting.mitsuba.exr`` (same folder) through the emitter of
+    :func:`mitsuba_envmap_xml` and the BSDF of :func:`mitsuba_bsdf_xml`;
+    ``mitsuba scene.mitsuba.xml`` renders it.
+    """
+    strip = lambda x: x.split("-->", 1)[1].strip()  # noqa: E731  (drop the leading comment)
+    ind = lambda x: "\n".join("    " + ln for ln in x.splitlines())  # noqa: E731
+    return ("<!-- brdfcap export: the fitted material on a unit sphere under the recovered "
+            "lighting, brdfcap world frame (+z up); docs/exports.md -->\n"
+            '<scene version="3.0.0">\n'
+            '    <integrator type="path"><integer name="max_depth" value="8"/></integrator>\n'
+            '    <sensor type="perspective">\n        <float name="fov" value="30"/>\n'
+            '        <transform name="to_world">\n'
+            '            <lookat origin="0, -5, 0" target="0, 0, 0" up="0, 0, 1"/>\n'
+            "        </transform>\n"
+            '        <sampler type="independent"><integer name="sample_count" value="256"/>'
+            "</sampler>\n"
+            f'        <film type="hdrfilm"><integer name="width" value="{width}"/>'
+            f'<integer name="height" value="{height}"/></film>\n'
+            "    </sensor>\n"
+            f"{ind(strip(mitsuba_envmap_xml()))}\n{ind(strip(mitsuba_bsdf_xml(spec)))}\n"
+            '    <shape type="sphere"><ref id="brdfcap_material"/></shape>\n'
+            "</scene>\n")
+
+
 def _material_origin(results: dict) -> str:
     """Where the exported material comes from: fitted by the run, or given in the capture."""
     brdf = results.get("brdf") or {}
@@ -689,5 +719,8 @@ def export_results(results_dir: str | Path, out_dir: str | Path,
                 doc["materials"][0]["extras"]["brdfcap"]["source"] = origin
                 return [write_json_atomic(out / "material.gltf", doc)]
             attempt("gltf", _gltf)
+        if {"lighting.mitsuba.exr", "material.mitsuba.xml"} <= set(written["files"]):
+            attempt("mitsuba scene", lambda: [write_text_atomic(
+                out / "scene.mitsuba.xml", mitsuba_scene_xml(spec or _spec()))])
     write_json_atomic(out / "export.json", {"results": str(rpath), **written})
     return written

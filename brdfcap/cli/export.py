@@ -61,7 +61,8 @@ def maps_of_run(results: dict, out: Path, results_path: Path) -> list[Path]:
 @click.option("--only", "only", type=click.Choice(EXPORTS), multiple=True,
               help="Write only these exports (repeatable; default: all that the run allows). "
                    "lighting: lighting.exr and the Mitsuba emitter lighting.mitsuba.{exr,xml,"
-                   "json}; mitsuba: material.mitsuba.{xml,json}; gltf: material.gltf.")
+                   "json}; mitsuba: material.mitsuba.{xml,json} (and scene.mitsuba.xml with "
+                   "the lighting); gltf: material.gltf.")
 @click.option("--maps", is_flag=True,
               help="Also write per-pixel normal and albedo EXRs of every view and, for a mesh "
                    "capture, the mesh with per-vertex albedo and normals (PLY); re-runs "

@@ -127,3 +127,27 @@ def test_mitsuba_exr_holds_the_series_at_mitsubas_texel_directions(tmp_path):
     m = [float(x) for x in hdr.getattribute("brdfcap:mitsuba_to_world").split()]
     assert m == [v for row in MITSUBA_ENVMAP_TO_WORLD for v in row]
     assert "pi*v/(H-1)" in hdr.getattribute("brdfcap:latlong_frame")
+
+
+def test_mitsuba_scene_renders_the_material_under_the_lighting(tmp_path):
+    mi = _mitsuba()
+    res = tmp_path / "res"
+    res.mkdir()
+    kd = [0.5, 0.4, 0.3]
+    (res / "results.json").write_text(json.dumps({
+        "capture": "asymmetric", "fit": {"problem": "both"},
+        "lighting": {"lmax": 2, "sh": "rh2001-real", "coefficients": COEFFS.tolist()},
+        "brdf": {"model": "lambertian", "source": "fitted", "parameters": {"albedo": kd}}}))
+    out = tmp_path / "exp"
+    done = export_results(res, out, only=("lighting", "mitsuba"), window="none")
+    assert "scene.mitsuba.xml" in done["files"]
+    xml = (out / "scene.mitsuba.xml").read_text().split("-->", 1)[1]
+    xml = xml.replace('value="lighting.mitsuba.exr"', f'value="{out / "lighting.mitsuba.exr"}"')
+    xml = xml.replace('name="width" value="256"', 'name="width" value="32"').replace(
+        'name="height" value="256"', 'name="height" value="32"')
+    img = np.asarray(mi.render(mi.load_string(xml), spp=2048))
+    centre = img[15:17, 15:17].reshape(-1, 3).mean(0)
+    # the camera looks from -y: the centre pixels see the sphere's normal (0, -1, 0)
+    n = torch.tensor([[0.0, -1.0, 0.0]], dtype=torch.float64)
+    want = (irradiance_sh(n, COEFFS) * torch.tensor(kd, dtype=torch.float64) / math.pi)[0]
+    assert np.allclose(centre, want.numpy(), rtol=0.03), (centre, want)
