@@ -8,13 +8,20 @@ per-pixel maps, the in-memory :class:`~brdfcap.reconstruct.geometry.Samples` and
 * ``lighting.exr``: the recovered SH lighting evaluated on a lat-long grid
   (:func:`brdfcap.fit.envmap.reconstruct_envmap`, frame in ``docs/sh.md``), windowed per band
   (Sloan 2008), with the SH order, window and frame in the EXR header (``brdfcap:*`` keys).
+* ``lighting.mitsuba.exr`` + ``lighting.mitsuba.xml`` / ``.json``: the same series evaluated on
+  the texel grid of Mitsuba 3's ``envmap`` emitter, and that emitter with the ``to_world``
+  placing it in our world frame (:func:`mitsuba_envmap_directions`; the two lat-long layouts
+  differ by a mirror, so the EXR is resampled rather than rotated).
 * ``material.mitsuba.xml`` / ``material.mitsuba.json``: a Mitsuba 3 BSDF (``diffuse``,
   ``roughplastic``, ``roughconductor`` or their smooth forms ``plastic``/``conductor``) as XML
   and as the dict ``mitsuba.load_dict`` takes.
+* ``scene.mitsuba.xml``: both of the above around a unit sphere, ready to render.
 * ``material.gltf``: a glTF 2.0 document with one metallic-roughness material, valid against
   ``brdfcap/schemas/gltf-material.schema.json``, with the conversion error in its ``extras``.
 * ``maps/<view>_normal.exr``, ``maps/<view>_albedo.exr``: per-pixel world-frame normals and
   albedo of every view (NaN where no sample).
+* ``maps/albedo_vertices.ply``: the mesh with per-vertex linear albedo (barycentric-weighted
+  mean of the per-pixel albedo) and vertex normals (:func:`write_vertex_ply`).
 
 Parameter mapping (derivations in ``docs/exports.md#parameter-mapping``)
 -----------------------------------------------------------------------
@@ -58,16 +65,21 @@ import numpy as np
 import torch
 
 from brdfcap.capture.images import write_image
-from brdfcap.core.atomic import write_json_atomic, write_text_atomic
+from brdfcap.core.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.fit.brdf_models import BRDFSpec, brdf_value
 from brdfcap.fit.envmap import FRAME_DESCRIPTION, WINDOWS, reconstruct_envmap, sh_window
+from brdfcap.fit.sh import band_of_index, real_sh
 
 __all__ = ["EXPORTS", "GLTF_SCHEMA_PATH", "EquivalentMicrofacet", "material_from_results",
            "equivalent_microfacet", "lighting_latlong", "write_lighting_exr",
            "mitsuba_bsdf_dict", "mitsuba_bsdf_xml", "gltf_brdf", "gltf_material",
-           "gltf_conversion_error", "validate_gltf", "write_maps", "view_names", "export_results",
-           "load_results"]
+           "gltf_conversion_error", "validate_gltf", "MITSUBA_ENVMAP_TO_WORLD",
+           "mitsuba_envmap_directions", "lighting_latlong_mitsuba", "mitsuba_envmap_xml",
+           "mitsuba_envmap_dict", "write_lighting_mitsuba", "mitsuba_scene_xml", "write_maps",
+           "view_names",
+           "pixel_albedo", "vertex_albedo", "write_vertex_ply", "VERTEX_PLY_FLOATS",
+           "export_results", "load_results"]
 
 #: What ``brdfcap export --only`` accepts, in the order they are written.
 EXPORTS = ("lighting", "mitsuba", "gltf")
@@ -114,10 +126,16 @@ def material_from_results(results: dict, path: str | Path | None = None) -> BRDF
     Raises
     ------
     BrdfcapError
-        The run's BRDF has no parametric form (``sh-radial``, ``sh-isotropic``, …).
+        The run's BRDF has no parametric form (``sh-radial``, ``sh-isotropic``, …), or it was not
+        measured at all (albedo fixed to 1 to fix the albedo × lighting scale).
     """
     brdf = results.get("brdf") or {}
     model, par = brdf.get("model"), brdf.get("parameters") or {}
+    if str(par.get("albedo_source", "")).startswith("fixed"):
+        raise BrdfcapError("the run did not measure the material: its albedo was fixed to 1 "
+                           "(lighting and albedo both unknown, scale absorbed into the "
+                           "lighting); give [material] albedo in capture.toml or run "
+                           "'--problem brdf' for a material to export", path)
     if model == "lambertian":
         return BRDFSpec("lambertian", kd=_rgb(par.get("albedo", par.get("kd")), "albedo", path))
     if model == "lambertian+phong":  # per-pixel map (brdf-map): the median albedo
@@ -365,10 +383,207 @@ def write_lighting_exr(results: dict, path: str | Path, height: int = 128, width
     return write_image(path, img, attributes=attrs)
 
 
+#: ``to_world`` of the exported Mitsuba ``envmap`` emitter: a rotation by +90° about x taking
+#: Mitsuba's envmap frame (local +y up) to ours (world +z up): local ``(x, y, z)`` → world
+#: ``(x, −z, y)``. Row-major 4×4.
+MITSUBA_ENVMAP_TO_WORLD = ((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, -1.0, 0.0), (0.0, 1.0, 0.0, 0.0),
+                           (0.0, 0.0, 0.0, 1.0))
+
+MITSUBA_FRAME_DESCRIPTION = (
+    "Mitsuba 3 envmap texel grid, emitter local frame +y up: row v <-> theta = pi*v/(H-1) from "
+    "local +y (rows 0 and H-1 at the poles), column u <-> phi = 2*pi*(u+0.5)/W, local direction "
+    "(sin phi sin theta, cos theta, -cos phi sin theta); to_world = rotate x by +90 deg, so "
+    "world direction = (sin phi sin theta, cos phi sin theta, cos theta) in the brdfcap world "
+    "frame (+z up); pixels hold radiance arriving from that direction"
+)
+
+
+def mitsuba_envmap_directions(height: int, width: int) -> torch.Tensor:
+    r"""World directions ``(H, W, 3)`` that Mitsuba 3's ``envmap`` reads each texel at.
+
+    Mitsuba 3 (``src/emitters/envmap.cpp``, ``direction_to_uv`` / ``eval_spectrum``) maps a
+    local direction ``v`` to ``u = atan2(v_x, −v_z)/2π``, ``t = acos(v_y)/π`` and interpolates
+    bilinearly with texel ``(row j, column i)`` at ``t = j/(H−1)`` and
+    ``u = (i + ½)/W`` (a half-texel shift; the last column wraps to the first). Our lat-long
+    (``docs/sh.md``) is +z up with φ counter-clockwise from +x seen from above; Mitsuba's φ runs
+    clockwise about its up axis, so no rotation of our image matches: the texels are evaluated
+    afresh at the directions ``to_world · v`` (:data:`MITSUBA_ENVMAP_TO_WORLD`).
+    """
+    theta = math.pi * torch.arange(height, dtype=torch.float64) / (height - 1)
+    phi = 2.0 * math.pi * (torch.arange(width, dtype=torch.float64) + 0.5) / width
+    st, ct = torch.sin(theta)[:, None], torch.cos(theta)[:, None]
+    local = torch.stack([torch.sin(phi)[None] * st, ct.expand(-1, width),
+                         -torch.cos(phi)[None] * st], -1)
+    r = torch.tensor(MITSUBA_ENVMAP_TO_WORLD, dtype=torch.float64)[:3, :3]
+    return local @ r.T
+
+
+def lighting_latlong_mitsuba(results: dict, height: int = 128, width: int = 256,
+                             window: str = "hann", path: str | Path | None = None
+                             ) -> tuple[np.ndarray, dict]:
+    """Return the recovered SH lighting on Mitsuba 3's envmap grid and its EXR metadata.
+
+    The grid is that of :func:`mitsuba_envmap_directions`.
+
+    Same coefficients and window as :func:`lighting_latlong`; the image is meant for an
+    ``envmap`` emitter whose ``to_world`` is :data:`MITSUBA_ENVMAP_TO_WORLD`
+    (``lighting.mitsuba.xml``).
+    """
+    _, attrs = lighting_latlong(results, 2, 2, window, path)  # validates, builds metadata
+    light = results["lighting"]
+    c = torch.as_tensor(light["coefficients"], dtype=torch.float64)
+    lmax = int(attrs["brdfcap:sh_lmax"])
+    c = c * sh_window(window, lmax)[band_of_index(lmax)][:, None]
+    y = real_sh(mitsuba_envmap_directions(height, width), lmax)
+    attrs["brdfcap:latlong_frame"] = MITSUBA_FRAME_DESCRIPTION
+    attrs["brdfcap:mitsuba_to_world"] = " ".join(
+        f"{v:g}" for row in MITSUBA_ENVMAP_TO_WORLD for v in row)
+    return (y @ c).numpy(), attrs
+
+
+def mitsuba_envmap_xml(filename: str = "lighting.mitsuba.exr",
+                       emitter_id: str = "brdfcap_lighting") -> str:
+    """Return the Mitsuba 3 XML ``<emitter type="envmap">`` of the lighting, with ``to_world``."""
+    m = " ".join(f"{v:g}" for row in MITSUBA_ENVMAP_TO_WORLD for v in row)
+    return ("<!-- brdfcap export: recovered SH lighting; brdfcap world frame (+z up), the "
+            "to_world rotation maps Mitsuba's y-up envmap frame onto it (docs/exports.md) -->\n"
+            f'<emitter type="envmap" id={quoteattr(emitter_id)}>\n'
+            f"    <string name=\"filename\" value={quoteattr(filename)}/>\n"
+            f'    <transform name="to_world">\n        <matrix value="{m}"/>\n'
+            "    </transform>\n</emitter>\n")
+
+
+def mitsuba_envmap_dict(filename: str = "lighting.mitsuba.exr") -> dict:
+    """Return the emitter of :func:`mitsuba_envmap_xml` as JSON-able data.
+
+    ``to_world`` is the row-major 4×4 list; ``mitsuba.load_dict`` needs it wrapped:
+    ``d["to_world"] = mi.ScalarTransform4f(d["to_world"])``.
+    """
+    return {"type": "envmap", "filename": filename,
+            "to_world": [list(row) for row in MITSUBA_ENVMAP_TO_WORLD]}
+
+
+def write_lighting_mitsuba(results: dict, out_dir: str | Path, height: int = 128,
+                           width: int = 256, window: str = "hann", results_path=None
+                           ) -> list[Path]:
+    """Write ``lighting.mitsuba.exr`` and its emitter ``lighting.mitsuba.{xml,json}``."""
+    out = Path(out_dir)
+    img, attrs = lighting_latlong_mitsuba(results, height, width, window, results_path)
+    notes = ["load with: d = json.load(f)['emitter']; d['to_world'] = "
+             "mi.ScalarTransform4f(d['to_world']); file names are relative to this file",
+             f"SH lmax {attrs['brdfcap:sh_lmax']}, window {window}",
+             "radiance in the units of the capture's images (linear Rec.709)"]
+    if attrs["brdfcap:scale_fixing"]:
+        notes.append(f"scale: {attrs['brdfcap:scale_fixing']}")
+    return [write_image(out / "lighting.mitsuba.exr", img, attributes=attrs),
+            write_text_atomic(out / "lighting.mitsuba.xml", mitsuba_envmap_xml()),
+            write_json_atomic(out / "lighting.mitsuba.json",
+                              {"emitter": mitsuba_envmap_dict(), "notes": notes})]
+
+
 def view_names(capture) -> list[str]:
     """File stems of a capture's views (``000``, ``light_012``, …) for map file names."""
     return [Path(str(v.info.get("file") or f"view{i:03d}")).stem
             for i, v in enumerate(capture.views)]
+
+
+def pixel_albedo(samples, fit) -> np.ndarray | None:
+    """Per-sample albedo ``kd × measured / predicted`` ``(N, C)``; ``None`` for ``brdf-map``.
+
+    The fitted albedo (``albedo`` or ``kd`` estimate, else 1) corrected by each sample's
+    residual: exact for a Lambertian model, the diffuse-dominated estimate otherwise; NaN where
+    the prediction is zero.
+    """
+    if getattr(fit, "measurement", None) is not None:
+        return None
+    pred = fit.prediction.detach().cpu().numpy()
+    rad = samples.radiance.cpu().numpy()
+    kd = np.ones(rad.shape[1])
+    for e in fit.estimates:
+        if e.quantity in ("albedo", "kd") and e.value.numel() == rad.shape[1]:
+            kd = e.value.cpu().numpy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.abs(pred) > 1e-12, rad / pred, np.nan) * kd
+
+
+def vertex_albedo(mesh, samples, albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex albedo ``(V, C)`` and weight ``(V,)`` from per-sample albedo ``(N, C)``.
+
+    Each sample (a pixel's hit point on triangle ``t``) adds its albedo to the three vertices of
+    ``t`` with its barycentric weights; a vertex's albedo is the weighted mean, its weight the
+    sum of weights (≈ the number of pixels that saw it). NaN where no sample reached a vertex.
+    """
+    if samples.triangle is None or samples.position is None:
+        raise BrdfcapError("the samples carry no hit triangles (not a mesh capture): no "
+                           "per-vertex maps")
+    tri = samples.triangle.cpu().numpy()
+    pos = samples.position.cpu().numpy()
+    ok = (tri >= 0) & np.isfinite(albedo).all(-1)
+    tri, pos, alb = tri[ok], pos[ok], albedo[ok]
+    f = mesh.faces[tri]
+    a, b, c = (mesh.vertices[f[:, i]] for i in range(3))
+    v0, v1, v2 = b - a, c - a, pos - a  # barycentric coordinates (Ericson 2005, §3.4)
+    d00, d01, d11 = (v0 * v0).sum(-1), (v0 * v1).sum(-1), (v1 * v1).sum(-1)
+    d20, d21 = (v2 * v0).sum(-1), (v2 * v1).sum(-1)
+    den = d00 * d11 - d01 * d01
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wb = np.where(den > 0, (d11 * d20 - d01 * d21) / den, 1 / 3)
+        wc = np.where(den > 0, (d00 * d21 - d01 * d20) / den, 1 / 3)
+    w = np.clip(np.stack([1 - wb - wc, wb, wc], -1), 0.0, None)
+    w = w / np.maximum(w.sum(-1, keepdims=True), 1e-300)
+    n_v = mesh.vertices.shape[0]
+    weight = np.bincount(f.reshape(-1), w.reshape(-1), minlength=n_v)
+    acc = np.stack([np.bincount(f.reshape(-1), (w * alb[:, ch:ch + 1]).reshape(-1),
+                                minlength=n_v) for ch in range(alb.shape[1])], -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(weight[:, None] > 0, acc / weight[:, None], np.nan)
+    return out, weight
+
+
+#: Vertex properties of ``albedo_vertices.ply`` after ``x y z nx ny nz red green blue``.
+VERTEX_PLY_FLOATS = ("albedo_r", "albedo_g", "albedo_b", "albedo_weight")
+
+
+def write_vertex_ply(path: str | Path, mesh, albedo: np.ndarray, weight: np.ndarray) -> Path:
+    """Write the mesh with per-vertex normals and albedo as a binary little-endian PLY.
+
+    Vertex properties: ``x y z`` (world frame, the mesh's units), ``nx ny nz`` (the unit vertex
+    normals the fit used), ``red green blue`` (uchar: the albedo sRGB-encoded and clipped to
+    [0, 1], for viewers; 0 where unseen), ``albedo_r albedo_g albedo_b`` (float32: linear albedo
+    in the capture's working colour space, NaN where no pixel saw the vertex) and
+    ``albedo_weight`` (sum of the barycentric weights of the pixels that saw it); faces as
+    ``vertex_indices``.
+    """
+    import colour  # only here: the display encoding of the viewer colours
+
+    alb = np.asarray(albedo, np.float64)
+    if alb.shape[1] == 1:
+        alb = np.repeat(alb, 3, 1)
+    alb = alb[:, :3]
+    shown = np.nan_to_num(np.clip(colour.models.eotf_inverse_sRGB(np.clip(alb, 0, 1)), 0, 1))
+    vdt = np.dtype([(n, "<f4") for n in ("x", "y", "z", "nx", "ny", "nz")]
+                   + [(n, "u1") for n in ("red", "green", "blue")]
+                   + [(n, "<f4") for n in VERTEX_PLY_FLOATS])
+    v = np.empty(mesh.vertices.shape[0], vdt)
+    for i, n in enumerate("xyz"):
+        v[n] = mesh.vertices[:, i]
+        v["n" + n] = mesh.vertex_normals[:, i]
+    for i, n in enumerate(("red", "green", "blue")):
+        v[n] = np.round(shown[:, i] * 255).astype(np.uint8)
+    for i, n in enumerate(VERTEX_PLY_FLOATS[:3]):
+        v[n] = alb[:, i]
+    v["albedo_weight"] = weight
+    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    fa = np.empty(mesh.faces.shape[0], fdt)
+    fa["n"] = 3
+    fa["i"] = mesh.faces
+    props = "".join(f"property {'uchar' if vdt[n] == np.uint8 else 'float'} {n}\n"
+                    for n in vdt.names)
+    header = ("ply\nformat binary_little_endian 1.0\ncomment brdfcap per-vertex albedo: linear, "
+              "capture working colour space (docs/exports.md)\n"
+              f"element vertex {len(v)}\n{props}element face {len(fa)}\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    return write_bytes_atomic(path, header.encode("ascii") + v.tobytes() + fa.tobytes())
 
 
 def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, int]],
@@ -387,16 +602,7 @@ def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, 
     pix = samples.pixel.cpu().numpy()
     nrm = samples.normal.cpu().numpy()
     meas = getattr(fit, "measurement", None)
-    ratio = None
-    if meas is None:
-        pred = fit.prediction.detach().cpu().numpy()
-        rad = samples.radiance.cpu().numpy()
-        kd = np.ones(rad.shape[1])
-        for e in fit.estimates:
-            if e.quantity in ("albedo", "kd") and e.value.numel() == rad.shape[1]:
-                kd = e.value.cpu().numpy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(np.abs(pred) > 1e-12, rad / pred, np.nan) * kd
+    ratio = pixel_albedo(samples, fit)
     written = []
     if meas is not None:  # one per-pixel map for the whole capture (brdf-map)
         written.append(write_image(out / "albedo.exr", np.asarray(meas.albedo_map, np.float32)))
@@ -422,6 +628,45 @@ def write_maps(out_dir: str | Path, samples, fit, image_shapes: list[tuple[int, 
             a_img[r, c] = ratio[sel]
             written.append(write_image(out / f"{name}_albedo.exr", a_img))
     return written
+
+
+def mitsuba_scene_xml(spec: BRDFSpec, width: int = 256, height: int = 256) -> str:
+    """Return a Mitsuba 3 scene: a unit sphere of the material under the exported lighting.
+
+    World frame as everywhere in brdfcap (+z up); the camera looks at the sphere from −y.
+    Uses ``lighting.mitsuba.exr`` (same folder) through the emitter of
+    :func:`mitsuba_envmap_xml` and the BSDF of :func:`mitsuba_bsdf_xml`;
+    ``mitsuba scene.mitsuba.xml`` renders it.
+    """
+    strip = lambda x: x.split("-->", 1)[1].strip()  # noqa: E731  (drop the leading comment)
+    ind = lambda x: "\n".join("    " + ln for ln in x.splitlines())  # noqa: E731
+    return ("<!-- brdfcap export: the fitted material on a unit sphere under the recovered "
+            "lighting, brdfcap world frame (+z up); docs/exports.md -->\n"
+            '<scene version="3.0.0">\n'
+            '    <integrator type="path"><integer name="max_depth" value="8"/></integrator>\n'
+            '    <sensor type="perspective">\n        <float name="fov" value="30"/>\n'
+            '        <transform name="to_world">\n'
+            '            <lookat origin="0, -5, 0" target="0, 0, 0" up="0, 0, 1"/>\n'
+            "        </transform>\n"
+            '        <sampler type="independent"><integer name="sample_count" value="256"/>'
+            "</sampler>\n"
+            f'        <film type="hdrfilm"><integer name="width" value="{width}"/>'
+            f'<integer name="height" value="{height}"/></film>\n'
+            "    </sensor>\n"
+            f"{ind(strip(mitsuba_envmap_xml()))}\n{ind(strip(mitsuba_bsdf_xml(spec)))}\n"
+            '    <shape type="sphere"><ref id="brdfcap_material"/></shape>\n'
+            "</scene>\n")
+
+
+def _material_origin(results: dict) -> str:
+    """Where the exported material comes from: fitted by the run, or given in the capture."""
+    brdf = results.get("brdf") or {}
+    src = str(brdf.get("source") or "")
+    if "[material]" in src:
+        return f"given, not measured: {src}"
+    detail = src.removeprefix("fitted").strip()
+    problem = (results.get("fit") or {}).get("problem", "?")
+    return f"fitted by 'brdfcap run --problem {problem}'" + (f" {detail}" if detail else "")
 
 
 def export_results(results_dir: str | Path, out_dir: str | Path,
@@ -450,23 +695,32 @@ def export_results(results_dir: str | Path, out_dir: str | Path,
 
     if "lighting" in only:
         attempt("lighting", lambda: [write_lighting_exr(results, out / "lighting.exr", height,
-                                                        width, window, rpath)])
+                                                        width, window, rpath),
+                                     *write_lighting_mitsuba(results, out, height, width,
+                                                             window, rpath)])
     spec = None
     if "mitsuba" in only or "gltf" in only:
         def _spec():
             nonlocal spec
             spec = material_from_results(results, rpath)
             return spec
+        origin = _material_origin(results)
         if "mitsuba" in only:
             def _mitsuba():
                 s = _spec()
                 d, notes = mitsuba_bsdf_dict(s)
                 return [write_text_atomic(out / "material.mitsuba.xml", mitsuba_bsdf_xml(s)),
                         write_json_atomic(out / "material.mitsuba.json",
-                                          {"bsdf": d, "notes": notes})]
+                                          {"bsdf": d, "source": origin, "notes": notes})]
             attempt("mitsuba", _mitsuba)
         if "gltf" in only:
-            attempt("gltf", lambda: [write_json_atomic(out / "material.gltf",
-                                                       gltf_material(spec or _spec()))])
+            def _gltf():
+                doc = gltf_material(spec or _spec())
+                doc["materials"][0]["extras"]["brdfcap"]["source"] = origin
+                return [write_json_atomic(out / "material.gltf", doc)]
+            attempt("gltf", _gltf)
+        if {"lighting.mitsuba.exr", "material.mitsuba.xml"} <= set(written["files"]):
+            attempt("mitsuba scene", lambda: [write_text_atomic(
+                out / "scene.mitsuba.xml", mitsuba_scene_xml(spec or _spec()))])
     write_json_atomic(out / "export.json", {"results": str(rpath), **written})
     return written

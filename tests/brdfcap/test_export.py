@@ -7,6 +7,7 @@ import math
 
 import jsonschema
 import numpy as np
+import open3d as o3d
 import OpenImageIO as oiio
 import pytest
 import torch
@@ -19,6 +20,7 @@ from brdfcap.cli import main
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.export import (
     equivalent_microfacet,
+    export_results,
     gltf_brdf,
     gltf_material,
     material_from_results,
@@ -98,6 +100,10 @@ def test_material_from_results_names_what_cannot_be_exported():
     assert spec.model == "phong" and spec.s == 30.0
     with pytest.raises(BrdfcapError, match="sh-radial.*--problem brdf"):
         material_from_results({"brdf": {"model": "sh-radial", "parameters": {}}}, "r.json")
+    with pytest.raises(BrdfcapError, match="did not measure the material"):
+        material_from_results({"brdf": {"model": "lambertian", "parameters": {
+            "albedo": [1.0] * 3,
+            "albedo_source": "fixed to 1 (scale absorbed into the lighting)"}}})
     with pytest.raises(BrdfcapError, match="not finite"):
         material_from_results({"brdf": {"model": "lambertian",
                                         "parameters": {"albedo": [float("nan")] * 3}}})
@@ -187,10 +193,14 @@ def test_export_cli_on_a_run(tiny_template, tmp_path):
     out = tmp_path / "exp"
     r = CliRunner().invoke(main, ["export", str(res), str(out), "--maps"])
     assert r.exit_code == 0, r.output
-    for f in ("lighting.exr", "material.mitsuba.xml", "material.mitsuba.json", "material.gltf",
-              "export.json"):
+    for f in ("lighting.exr", "lighting.mitsuba.exr", "lighting.mitsuba.xml", "export.json"):
         assert (out / f).is_file(), f
-    validate_gltf(json.loads((out / "material.gltf").read_text()))
+    # lighting and albedo both unknown: the albedo was fixed to 1, so there is no measured
+    # material to hand to a renderer (a white diffuse material would be made up)
+    assert not (out / "material.gltf").exists() and not (out / "material.mitsuba.xml").exists()
+    assert "skipped mitsuba: the run did not measure the material" in r.output
+    manifest = json.loads((out / "export.json").read_text())
+    assert any(s.startswith("gltf: the run did not measure") for s in manifest["skipped"])
     normals = sorted((out / "maps").glob("*_normal.exr"))
     assert len(normals) == 2
     n = read_pixels(normals[0])[0]
@@ -200,8 +210,38 @@ def test_export_cli_on_a_run(tiny_template, tmp_path):
     # per-pixel albedo (fitted albedo × measured/predicted) scatters around 1
     a = read_pixels(sorted((out / "maps").glob("*_albedo.exr"))[0])[0]
     assert abs(float(np.nanmedian(a)) - 1.0) < 0.05
+    _check_vertex_ply(out, json.loads((res / "results.json").read_text()))
     r = CliRunner().invoke(main, ["export", str(tmp_path / "nowhere"), str(out)])
     assert r.exit_code == 1 and "no results.json here" in r.output
+
+
+def _check_vertex_ply(out, results):
+    """``maps/albedo_vertices.ply`` of a mesh capture, read back by open3d's own PLY reader."""
+    ply = out / "maps" / "albedo_vertices.ply"
+    tm = o3d.io.read_triangle_mesh(str(ply))
+    assert len(tm.vertices) == results["geometry"]["mesh"]["vertices"]
+    assert len(tm.triangles) == results["geometry"]["mesh"]["triangles"]
+    # the tiny capture is a unit sphere at the origin: outward unit normals, world frame
+    pos, nrm = np.asarray(tm.vertices), np.asarray(tm.vertex_normals)
+    assert np.allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-5)
+    assert ((nrm * pos / np.linalg.norm(pos, axis=1, keepdims=True)).sum(1) > 0.98).all()
+    pc = o3d.t.io.read_point_cloud(str(ply))
+    alb = np.concatenate([pc.point[k].numpy() for k in ("albedo_r", "albedo_g", "albedo_b")], 1)
+    w = pc.point["albedo_weight"].numpy()[:, 0]
+    seen = w > 0
+    assert 0.2 * len(w) < seen.sum() < len(w)  # some vertices face no camera
+    assert np.isfinite(alb[seen]).all() and np.isnan(alb[~seen]).all()
+    # the fitted albedo (fixed to 1: lighting and albedo both unknown) ...
+    fitted = np.asarray(results["brdf"]["parameters"]["albedo"], float)
+    assert np.allclose(np.median(alb[seen], 0), fitted, atol=0.05)
+    # ... and the weighted vertex mean is the mean of the per-pixel albedo EXRs of the export
+    # (each pixel's barycentric weights sum to 1)
+    pix = np.concatenate([read_pixels(p)[0].reshape(-1, 3)
+                          for p in sorted((out / "maps").glob("*_albedo.exr"))])
+    pix = pix[np.isfinite(pix).all(1)]
+    vmean = (w[seen, None] * alb[seen]).sum(0) / w[seen].sum()
+    assert np.allclose(vmean, pix.mean(0), rtol=1e-4)
+    assert abs(w.sum() - len(pix)) < 1e-3 * len(pix)
 
 
 def test_export_maps_of_a_directional_capture(tmp_path):
@@ -219,6 +259,7 @@ def test_export_maps_of_a_directional_capture(tmp_path):
     assert r.exit_code == 0, r.output
     assert "skipped lighting" in r.output  # directional lights: no SH lighting to export
     assert not list((out / "maps").glob("*_normal.exr"))
+    assert not (out / "maps" / "albedo_vertices.ply").exists()  # no mesh
     n = read_pixels(out / "maps" / "normal.exr")[0]
     ok = np.isfinite(n).all(-1)
     assert ok.sum() > 500 and np.allclose(np.linalg.norm(n[ok], axis=-1), 1.0, atol=1e-3)
@@ -227,3 +268,23 @@ def test_export_maps_of_a_directional_capture(tmp_path):
     doc = json.loads((out / "material.gltf").read_text())
     validate_gltf(doc)
     assert doc["materials"][0]["extras"]["brdfcap"]["model"] == "phong"
+
+
+def test_material_exports_say_whether_the_material_was_measured(tmp_path):
+    res = tmp_path / "res"
+    res.mkdir()
+    given = {"capture": "t", "lighting": None, "fit": {"problem": "lighting"},
+             "brdf": {"model": "phong", "source": "capture.toml [material] (known)",
+                      "parameters": {"kd": [0.3] * 3, "ks": [0.2] * 3, "s": 20.0}}}
+    (res / "results.json").write_text(json.dumps(given))
+    export_results(res, tmp_path / "a", only=("mitsuba", "gltf"))
+    assert json.loads((tmp_path / "a" / "material.mitsuba.json").read_text())["source"] \
+        .startswith("given, not measured")
+    fitted = dict(given, fit={"problem": "brdf"},
+                  brdf=dict(given["brdf"], source="fitted (known distant lights)"))
+    (res / "results.json").write_text(json.dumps(fitted))
+    export_results(res, tmp_path / "b", only=("gltf",))
+    doc = json.loads((tmp_path / "b" / "material.gltf").read_text())
+    validate_gltf(doc)
+    assert doc["materials"][0]["extras"]["brdfcap"]["source"] == \
+        "fitted by 'brdfcap run --problem brdf' (known distant lights)"

@@ -80,7 +80,10 @@ def test_run_from_a_config_file_then_from_its_config_json(tiny_template, tmp_pat
     assert set(stages) == {"capture", "reconstruct", "fit", "report"}
     assert all(s["peak_rss_mb"] > 0 and s["wall_s"] >= 0 for s in stages.values())
     assert "reconstruct" in r.output and "MiB" in r.output  # --profile table
-    assert (first / "export" / "material.gltf").is_file()
+    assert (first / "export" / "lighting.mitsuba.xml").is_file()
+    # lighting and albedo both unknown (albedo fixed to 1): no measured material to export
+    assert not (first / "export" / "material.gltf").exists()
+    assert "skipped export gltf: the run did not measure the material" in r.output
     assert "MiB" in (first / "report.html").read_text()  # report's timings show memory
     # a flag on the command line wins over the file; config.json is itself a config
     second = tmp_path / "again"
