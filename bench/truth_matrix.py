@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import torch
+
 from brdfcap.testing import reference_dir
 from brdfcap.truth_matrix import BRDFS, markdown_table, rendered, run_cell
 

@@ -72,7 +72,7 @@ BRDFS: dict[str, BRDFSpec] = {
 
 
 def sphere_views(views: int, px: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Normals, directions to the camera and view index of orthographic views of a unit sphere.
+    """Return normals, camera directions and view index of orthographic views of a unit sphere.
 
     View 0 looks down −z (camera on +z); views 1–5 are on −z, ±x, ±y. Each view is a ``px × px``
     image whose pixels inside the disc are listed in scan order (rows, then columns), so
@@ -137,7 +137,7 @@ def render_texels(spec: BRDFSpec, normal: torch.Tensor, wo: torch.Tensor,
 
 
 def load_probe(path: Path, downsample: int = 2) -> torch.Tensor:
-    """A lat-long probe ``(H, W, 3)`` averaged over ``downsample²`` texel blocks (float64)."""
+    """Read a lat-long probe ``(H, W, 3)`` averaged over ``downsample²`` texel blocks (float64)."""
     img = read_envmap(path).to(torch.float64)[..., :3]
     if downsample > 1:
         img = torch.nn.functional.avg_pool2d(img.permute(2, 0, 1)[None],
@@ -156,7 +156,7 @@ def _key(probe_path: Path, name: str, views: int, px: int, downsample: int) -> s
 
 def rendered(probe_path: Path, name: str, *, views: int = 6, px: int = 32, downsample: int = 2,
              cache: Path | None = None) -> dict:
-    """The clean render of one (probe, BRDF) and its truth, cached on disk under ``cache``.
+    """Render one (probe, BRDF) once, cached on disk under ``cache``.
 
     Returns ``{"normal", "wo", "view", "radiance", "probe", "seconds"}``; the cache key holds the
     probe file, BRDF parameters, views, image size, probe downsampling and :data:`RENDER_VERSION`.
@@ -283,7 +283,7 @@ def run_cell(data: dict, probe: str, name: str, views: int, lmax: int, *, reps: 
 
 
 def markdown_table(cells: list[Cell]) -> str:
-    """The matrix as a markdown table (module doc for the criteria)."""
+    """Format cells as a markdown table (module doc for the criteria)."""
     rows = ["| probe | BRDF | views | lmax | worst determined band error | coverage (n) "
             "| measured l* | truth l* | internal L | adequate | pass |",
             "|---|---|---|---|---|---|---|---|---|---|---|"]
