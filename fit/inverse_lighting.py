@@ -24,7 +24,7 @@ from brdfcap.core.errors import FitError
 from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
 from .conditioning import (
     BAYES_DEFINITION,
-    PRECISION_LIMIT,
+    ERROR_BOUND_LIMIT,
     band_statistics,
     band_statistics_bayes,
     model_adequacy,
@@ -349,8 +349,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     if not adequacy["adequate"] and adequacy["widen"] > 1.0:
         adequacy["withheld"] = "intervals widened; determined bands re-checked at the widened " \
                                "precision"
-        rel = torch.tensor([r_["relative_precision"] for r_ in rows], dtype=torch.float64)
-        still = rel * adequacy["widen"] <= PRECISION_LIMIT
+        rel = torch.tensor([r_["error_bound"] for r_ in rows], dtype=torch.float64)
+        still = rel * adequacy["widen"] <= ERROR_BOUND_LIMIT
         det = det & still[sol.band][:, None]
         for r_, ok in zip(rows, still.tolist()):
             if r_["determined"] and not ok:

@@ -228,7 +228,7 @@ def test_suggest_lmax_and_auto():
             {"l": 5, "observable": False, "determined": False},
             {"l": 6, "observable": True, "determined": False}]
     assert suggest_lmax(rows) == 4
-    fit, _, _ = _single_view_distant_light("auto", torch.Generator().manual_seed(7), n=2000)
+    fit, _, _ = _single_view_distant_light("auto", torch.Generator().manual_seed(7), n=4000)
     assert fit.lmax == fit.suggested_lmax
     assert all(r["determined"] for r in fit.bands if r["observable"])
 
