@@ -31,6 +31,7 @@ from .conditioning import (
     noise_level,
     predicted_lstar,
     suggest_lmax,
+    weak_prior_variance,
 )
 from .lighting import SHFit
 from .memory import check_memory
@@ -333,13 +334,14 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     filt = _band_filter(spec, lint)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)
-    rows_all = band_statistics_bayes(full, filt, eps)[0]
+    weak = weak_prior_variance(full)
+    rows_all = band_statistics_bayes(full, filt, eps, weak)[0]
     suggested = suggest_lmax(rows_all)
     if auto:
         lrep = max(suggested, 0)
     k = (lrep + 1) ** 2
     sol = restrict(full, k)
-    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps)
+    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k])
     adequacy = model_adequacy(full, b, w, noise_known=noise_known, view=view)
     widen2 = adequacy["widen"] ** 2
     s_k = infl.to(sol.band.device)[sol.band].sqrt().T  # (C, K) split-half (Birge) widening
