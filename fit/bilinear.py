@@ -48,12 +48,37 @@ from .records import conditioning_json, lighting_json
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
 
-__all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL"]
+__all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL", "NULL_COMPONENT_MIN"]
 
 #: Eigenvalues of the Jacobi-scaled joint normal matrix below this fraction of the largest are
 #: exact ambiguities (null directions); float64 normal equations resolve ~1e-16, the structural
 #: ambiguities of the model sit at that level, genuine but weak information far above it.
 NULL_RTOL = 1e-10
+#: Components of a unit null direction (Jacobi-scaled) below this are round-off, not ambiguity.
+NULL_COMPONENT_MIN = 1e-6
+
+
+def _gauge_range(v: torch.Tensor, kd: torch.Tensor, f: torch.Tensor, off: int, lb: int,
+                 nch: int) -> tuple[float, float]:
+    """Admissible steps ``t`` along a null direction ``v``: ``kd_c + t v ≥ 0``, ``|f_l + t v| ≤ 1``.
+
+    The physical bounds of the factors (a non-negative albedo; a non-negative radial lobe has
+    ``|f_l| ≤ f_0 = 1`` since ``|P_l| ≤ 1``) bound how far an exact ambiguity can move the
+    estimate; ``(-inf, inf)`` when ``v`` does not move ``kd`` or ``f``.
+    """
+    lo, hi = -math.inf, math.inf
+    for c in range(nch):
+        a, x = float(v[off + lb + c]), float(kd[c])
+        if abs(a) > 1e-12:
+            t = -x / a
+            lo, hi = (max(lo, t), hi) if a > 0 else (lo, min(hi, t))
+    for l in range(1, lb + 1):
+        a, x = float(v[off + l - 1]), float(f[l])
+        if abs(a) > 1e-12:
+            t1, t2 = (-1.0 - x) / a, (1.0 - x) / a
+            lo, hi = max(lo, min(t1, t2)), min(hi, max(t1, t2))
+    lo, hi = min(lo, 0.0), max(hi, 0.0)  # an estimate outside the bounds: still range from it
+    return lo, hi
 
 
 @dataclass
@@ -316,21 +341,33 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     labels = ([("lighting", int(band[i])) for c in range(nch) for i in range(k)]
               + [("filter", l) for l in range(1, lb + 1)] + [("kd", c) for c in range(nch)])
     null_dirs = []
-    for j in torch.nonzero(null).flatten().tolist():
-        wts: dict = {}
-        for i, lab in enumerate(labels):
-            wts[lab] = wts.get(lab, 0.0) + float(u[i, j] ** 2)
-        null_dirs.append(sorted({lab for lab, v in wts.items() if v > 0.02}))
-    amb_l = sorted({l for d in null_dirs for (kind, l) in d if kind == "lighting"})
-    amb_f = sorted({l for d in null_dirs for (kind, l) in d if kind == "filter"})
-    amb_kd = any(kind == "kd" for d in null_dirs for (kind, _) in d)
-    # joint (not conditional) covariance of all unknowns: sigma^2 H^+
     keep = ~null
     hinv = (u[:, keep] / ev[keep]) @ u[:, keep].T * dsc[:, None] * dsc[None, :]
     nobs = int((w > 0).sum())
     chi2_joint = rss / max(nobs - int(keep.sum()), 1)
     sig2 = max(chi2_joint, 1.0) if var is not None else chi2_joint
     se_joint = (torch.diagonal(hinv).clamp_min(0) * sig2).sqrt()
+    # per-parameter flags: a coefficient is touched by an exact ambiguity when moving along its
+    # null direction over the physically admissible range (_gauge_range) moves it by more than
+    # its standard error; otherwise the spread of that range (uniform, variance range²/12) is
+    # added to its variance (gauge_var)
+    touched_p = torch.zeros(np_, dtype=torch.bool)
+    gauge_var = torch.zeros(np_, dtype=f64)
+    for j in torch.nonzero(null).flatten().tolist():
+        v = dsc * u[:, j]
+        lo, hi = _gauge_range(v, kd, f, off, lb, nch)
+        moves = (u[:, j].abs() >= NULL_COMPONENT_MIN)
+        spread = v.abs() * (hi - lo) if math.isfinite(hi - lo) else \
+            torch.where(moves, torch.full_like(v, math.inf), torch.zeros_like(v))
+        mat = moves & (spread > se_joint)
+        touched_p |= mat
+        gauge_var += torch.where(moves & ~mat, spread ** 2 / 12.0, torch.zeros_like(v))
+        null_dirs.append(sorted({labels[i] for i in torch.nonzero(mat).flatten().tolist()}))
+    se_joint = (se_joint ** 2 + gauge_var).sqrt()
+    amb_l = sorted({l for d in null_dirs for (kind, l) in d if kind == "lighting"})
+    amb_f = sorted({l for d in null_dirs for (kind, l) in d if kind == "filter"})
+    amb_kd = any(kind == "kd" for d in null_dirs for (kind, _) in d)
+    # joint (not conditional) covariance of all unknowns: sigma^2 H^+ (above)
 
     # final half-steps with the full solver: lighting given (kd, f) ...
     fk = S @ f
@@ -342,10 +379,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                       noise_source=src)
     # uncertainty = joint; coefficients in an exact ambiguity = not determined
     se_l = se_joint[: nch * k].reshape(nch, k).T
-    amb_mask = torch.zeros(k, dtype=torch.bool)
-    for l in amb_l:
-        amb_mask |= band == l
-    sol_l.determined = sol_l.determined & ~amb_mask[:, None]
+    amb_mask = touched_p[: nch * k].reshape(nch, k).T  # (K, C): material null components only
+    sol_l.determined = sol_l.determined & ~amb_mask
     sol_l.stderr_unregularised = torch.where(sol_l.determined, se_l,
                                              torch.full_like(se_l, math.inf))
     # the joint (unconditional) error bounds the conditional, regularised one from below
@@ -397,10 +432,11 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     kd = sol_b.coefficients[lb:, 0]
     kd_se = se_joint[nch * k + lb:]
     for l in amb_f:
-        f_se[l] = math.inf
-        sol_b.determined[l - 1] = False
+        if bool(touched_p[nch * k + l - 1]):
+            f_se[l] = math.inf
+            sol_b.determined[l - 1] = False
     if amb_kd:
-        kd_se = torch.full_like(kd_se, math.inf)
+        kd_se = torch.where(touched_p[nch * k + lb:], torch.full_like(kd_se, math.inf), kd_se)
     # band statistics of the filter: one coefficient per band, reference f_0 = 1
     fsol = LinearSolution(
         coefficients=torch.cat([torch.ones(1, 1, dtype=f64), sol_b.coefficients[:lb]]),
@@ -434,8 +470,12 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                         f"lighting bands {amb_l}, filter bands {amb_f}"
                         + (", diffuse albedo (the DC term cannot split into diffuse and "
                            "specular)" if amb_kd else "")
-                        + ": gauge fixed by the minimum-norm step from the starting filter; "
-                          "these coefficients are flagged not determined"
+                        + ": gauge fixed by the minimum-norm step from the starting filter "
+                          "(values and errors of the untouched coefficients are in that "
+                          "gauge); a coefficient is flagged not determined when moving along a "
+                          "null direction over its physically admissible range (kd >= 0, "
+                          "|f_l| <= f_0 = 1) moves it by more than its standard error; below "
+                          "that, the range's spread is added to its error"
                         if null_dirs else "none found (joint normal matrix full rank)"),
          "null_directions": [[f"{kind}:{l}" for kind, l in d] for d in null_dirs]},
         {"name": "unobserved frequencies",

@@ -67,11 +67,19 @@ from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, render_directional
 from .filters import lambda_l, phong_filter
+from .inverse_brdf import ALIAS_CORR, aliased_pairs
 from .sh import legendre_normalized
 from .solve import solve_wls
 
 __all__ = ["phong_radiance", "PhongFit", "fit_lambert_phong", "BrdfSH", "measure_brdf_sh",
-           "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX"]
+           "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX",
+           "ALIAS_SHIFT_SIGMA"]
+
+#: Aliased pairs (correlation below ``-ALIAS_CORR``) are reported only where fitting two more
+#: bands moves a band of the pair by more than this many standard errors: with one-sided
+#: support the unfitted bands alias into the fitted ones (the zigzag); where the lobe has died
+#: out below ``lmax`` the correlated estimates stay put and are as precise as stated.
+ALIAS_SHIFT_SIGMA = 2.0
 
 #: Highest Legendre band of the measured SH-domain ρ̂. A Phong lobe of exponent ``s`` has
 #: ``Λ_l ρ̂_l ≈ exp(-l²/(2s))`` (R&H 2001, §3.2): l = 24 keeps exponents up to s ≈ 60 to 1e-2.
@@ -352,6 +360,7 @@ class BrdfSH:
     bands: list[dict]
     ill_conditioned_from_l: int | None
     x_range: tuple[float, float]
+    ambiguities: list = field(default_factory=list)  # odd/even aliasing (issue 12)
 
 
 def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> BrdfSH:
@@ -359,7 +368,12 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
 
     Band ``l`` is *ill-conditioned* when its coefficient is not resolved by the sampled range
     of ``x`` (model-resolution diagonal < 0.5, eigenvalues below 1e-12 of the largest of the
-    column-equilibrated normal matrix dropped) or when its standard error exceeds ``|ρ̂_l|``
+    column-equilibrated normal matrix dropped), when it aliases with a neighbour (estimates of
+    bands ``l`` and ``l+1`` correlated below ``-ALIAS_CORR`` and one of them moved by more than
+    :data:`ALIAS_SHIFT_SIGMA` s.e. when two more bands are fitted: the samples see one side of
+    the lobe and the unfitted bands alias into the fitted ones, reported in
+    ``ambiguities``; :func:`brdfcap.fit.inverse_brdf.aliased_pairs`), or
+    when its standard error exceeds ``|ρ̂_l|``
     (SNR < 1: R&H's ``ρ̂_l`` below the noise), unless that error is below 1e-6 ``|ρ̂_0|`` (a
     coefficient that is zero, measured exactly: float64 round-off of noise-free data).
 
@@ -381,6 +395,10 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
     rho = np.zeros((lmax + 1, nch))
     se = np.full((lmax + 1, nch), math.inf)
     res = np.zeros((lmax + 1, nch))
+    ginvs = []
+    a2 = legendre_normalized(torch.from_numpy(x), lmax + 2, m=0)
+    band2 = torch.arange(lmax + 3)
+    shift = np.zeros((lmax + 1, nch))
     for c in range(nch):
         wc = torch.from_numpy(np.ascontiguousarray(w[:, c:c + 1]))
         yc = torch.from_numpy(np.ascontiguousarray(y[:, c:c + 1]))
@@ -396,6 +414,12 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         # scatter grows with the signal, a pooled σ² would misstate the per-band errors.
         # (AᵀWA)⁺ is solve_wls's λ = 0 covariance divided by its σ² = max(χ², 1).
         ginv = sol.covariance[0] / sol.chi2_reduced[0].clamp_min(1.0)
+        ginvs.append(ginv)
+        # the same fit two bands higher: how far the truncation moves each band (aliasing test)
+        d2x = (a2 * a2 * wc).sum(0)
+        sol2 = solve_wls(a2, yc, wc, band2, rule="none", noise_known=True,
+                         band_penalty=torch.where(d2x > 0, d2x, torch.ones_like(d2x)))
+        shift[:, c] = (sol2.coefficients[: lmax + 1, 0] - xsol).abs().numpy()
         aw = a * (wc[:, 0] * r)[:, None]
         meat = aw.T @ aw
         rank = float(sol.n_samples - sol.dof[0])  # eigenvalues kept (tr H at λ = 0)
@@ -405,6 +429,27 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         rho[:, c] = xsol.numpy()
         se[:, c] = np.where(res[:, c] > 0.5, np.sqrt(np.clip(torch.diagonal(cov).numpy(), 0,
                                                              None)), math.inf)
+    # one-sided angular support (lights on one side of the lobe, as in photometric stereo):
+    # adjacent Legendre terms alias, only their combination is determined (issue 12; the
+    # rule of fit_brdf_sh, from the same (AᵀWA)⁺)
+    pairs, corr = aliased_pairs(ginvs, lmax) if ginvs else ([], {})
+    with np.errstate(divide="ignore", invalid="ignore"):
+        moved = np.max(shift / se, axis=1)  # (L+1,) worst channel, in standard errors
+    # correlated estimates that two more bands leave in place show no zigzag: report a pair
+    # only where the truncation moves one of its bands by more than ALIAS_SHIFT_SIGMA s.e.
+    pairs = [p_ for p_ in pairs if max(moved[p_[0]], moved[p_[1]]) > ALIAS_SHIFT_SIGMA]
+    aliased = {x for p_ in pairs for x in p_}
+    ambiguities = []
+    if pairs:
+        ambiguities.append({
+            "name": "odd/even aliasing (one-sided angular support)",
+            "pairs": pairs, "correlation": [corr[p_[0]] for p_ in pairs],
+            "resolution": f"the samples see one side of the lobe (95% of them at r·ωi >= "
+                          f"{float(np.quantile(x, 0.05)) if x.size else math.nan:.3g}): the "
+                          f"estimates of bands l and l+1 are correlated below "
+                          f"-{ALIAS_CORR:g}, so only their combination is determined; both are "
+                          f"flagged not determined"})
+        se[sorted(aliased)] = math.inf
     bands, first = [], None
     floor = 1e-6 * np.abs(rho[0]).max(initial=0.0)
     for l in range(lmax + 1):
@@ -413,14 +458,15 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         ill = (not resolved) or bool((se[l] > np.maximum(np.abs(rho[l]), floor)).any())
         row = {"l": l, "resolution": float(res[l].min()), "median_snr": float(np.median(snr)),
                "rel_stderr": float(np.max(se[l] / max(np.abs(rho[0]).max(initial=0), 1e-300))),
-               "ill_conditioned": ill}
+               "ill_conditioned": ill, "aliased": l in aliased}
         if ill and first is None:
             first = l
         bands.append(row)
     an = np.zeros_like(rho) if analytic is None else np.asarray(analytic, np.float64)
     return BrdfSH(lmax=lmax, rho_hat=rho, stderr=se, analytic=an, bands=bands,
                   ill_conditioned_from_l=first,
-                  x_range=(float(x.min(initial=1.0)), float(x.max(initial=-1.0))))
+                  x_range=(float(x.min(initial=1.0)), float(x.max(initial=-1.0))),
+                  ambiguities=ambiguities)
 
 
 @dataclass
@@ -461,9 +507,11 @@ class BrdfMeasurement:
                    "bands": self.sh.bands,
                    "ill_conditioned_from_l": self.sh.ill_conditioned_from_l,
                    "x_range": list(self.sh.x_range),
+                   "ambiguities": self.sh.ambiguities,
                    "definition": "B_spec/E = Σ_l sqrt((2l+1)/4π) ρ̂_l P_l(r·ωi) (R&H 2001 eq. 12 "
                                  "with L_lm = E Y_lm(ωi)); band ill-conditioned when unresolved "
-                                 "(resolution < 0.5) or std. error > |ρ̂_l| (SNR < 1)"},
+                                 "(resolution < 0.5), std. error > |ρ̂_l| (SNR < 1) or aliased "
+                                 "with a neighbour (one-sided support, see ambiguities)"},
         }
 
 

@@ -195,9 +195,30 @@ def _aliased_pairs(design, w, n, lmax, chunk: int = 32768) -> tuple[list[list[in
         ws = w[s_:s_ + chunk]
         g = torch.einsum("ncj,nc,nck->cjk", a, ws, a)
         gram = g if gram is None else gram + g
+    # marginal over kd: the leading block of the pseudo-inverse
+    return aliased_pairs([torch.linalg.pinv(gram[c]) for c in range(gram.shape[0])], lmax)
+
+
+def aliased_pairs(covariances: list[torch.Tensor], lmax: int
+                  ) -> tuple[list[list[int]], dict]:
+    """Adjacent bands ``(l, l+1)`` whose estimates correlate below ``-ALIAS_CORR``.
+
+    Parameters
+    ----------
+    covariances : list of torch.Tensor
+        Per channel, a covariance (up to scale) of the estimates whose first ``lmax + 1``
+        entries are the bands ``0..lmax`` (e.g. ``(AᵀWA)⁺``).
+
+    Returns
+    -------
+    tuple
+        ``(pairs, corr)``: the aliased pairs and, per ``l``, the lowest correlation of bands
+        ``l`` and ``l+1`` over the channels. Shared by :func:`fit_brdf_sh` and
+        :func:`brdfcap.fit.diligent_fit.measure_brdf_sh`.
+    """
     out, corr = [], {}
-    for c in range(gram.shape[0]):
-        gi = torch.linalg.pinv(gram[c])[: lmax + 1, : lmax + 1]  # marginal over kd
+    for cov in covariances:
+        gi = torch.as_tensor(cov, dtype=torch.float64)[: lmax + 1, : lmax + 1]
         d = torch.diagonal(gi).clamp_min(1e-300).sqrt()
         cr = gi / d[:, None] / d[None, :]
         for l in range(lmax):

@@ -24,13 +24,14 @@ from brdfcap.core.errors import FitError
 from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
 from .conditioning import (
     BAYES_DEFINITION,
-    PRECISION_LIMIT,
+    ERROR_BOUND_LIMIT,
     band_statistics,
     band_statistics_bayes,
     model_adequacy,
     noise_level,
     predicted_lstar,
     suggest_lmax,
+    weak_prior_variance,
 )
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
@@ -458,13 +459,14 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     filt = _band_filter(spec, lint)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)
-    rows_all = band_statistics_bayes(full, filt, eps)[0]
+    weak = weak_prior_variance(full)
+    rows_all = band_statistics_bayes(full, filt, eps, weak)[0]
     suggested = suggest_lmax(rows_all)
     if auto:
         lrep = max(suggested, 0)
     k = (lrep + 1) ** 2
     sol = restrict(full, k)
-    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps)
+    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k])
     adequacy = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
     widen2 = adequacy["widen"] ** 2
     s_k = infl.to(sol.band.device)[sol.band].sqrt().T  # (C, K) split-half (Birge) widening
@@ -474,8 +476,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     if not adequacy["adequate"] and adequacy["widen"] > 1.0:
         adequacy["withheld"] = "intervals widened; determined bands re-checked at the widened " \
                                "precision"
-        rel = torch.tensor([r_["relative_precision"] for r_ in rows], dtype=torch.float64)
-        still = rel * adequacy["widen"] <= PRECISION_LIMIT
+        rel = torch.tensor([r_["error_bound"] for r_ in rows], dtype=torch.float64)
+        still = rel * adequacy["widen"] <= ERROR_BOUND_LIMIT
         det = det & still[sol.band][:, None]
         for r_, ok in zip(rows, still.tolist()):
             if r_["determined"] and not ok:

@@ -56,7 +56,7 @@ def problem_brdf_map(samples, known: Known, opts: FitOptions) -> FitResult:
            Estimate("lambertian_albedo", glob.albedo, glob.stderr, "channel",
                     note="global Lambertian fit (brdf.lambertian_global)")]
     return FitResult("brdf-map", est, pred, {"brdf": rec}, albedo=glob, measurement=meas,
-                     bands={"brdf": sh.bands})
+                     bands={"brdf": sh.bands}, ambiguities=list(sh.ambiguities))
 
 
 register_problem(Problem(

@@ -52,3 +52,44 @@ def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples
     assert len(band) == (lmax + 1) ** 2 and math.isfinite(float(gi["value"].sum()))
     js = fit.to_results()["gauge_invariant"]
     assert len(js["stderr"]) == len(js["quantities"])
+
+
+def test_only_coefficients_an_ambiguity_moves_are_flagged():
+    """Per-coefficient flags (issue 12, ``fit.bilinear._gauge_range``).
+
+    The diffuse/specular split of the DC term rescales every lighting band with ``Â_l ≠ 0``
+    (``L_l → (kd/kd') L_l``) and the ``f_3`` ambiguity rescales band 3: their null directions
+    move each coefficient in proportion to its value. A lighting with half of its coefficients
+    exactly 0 (the DC and the rest nonzero): the zero coefficients are not moved by any
+    ambiguity, so they are reported determined, with finite errors whose 95% intervals contain
+    0 — unless their estimate, ~1 s.e. from 0, times the admissible range (kd >= 0,
+    |f_l| <= 1) exceeds one s.e. (about half of them here); the clearly nonzero ones stay flagged.
+    The old rule flagged whole bands in every channel.
+    """
+    spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
+    lmax = 4
+    g = torch.Generator().manual_seed(11)
+    light = random_lighting(lmax, g, dc=1.0, amp=0.3)
+    zero = torch.zeros_like(light, dtype=torch.bool)
+    zero[1:] = torch.rand(light[1:].shape, generator=g, dtype=torch.float64) < 0.5
+    light[zero] = 0.0
+    n, r = unit(4000, g), unit(4000, g)
+    b = render_sh(spec, n, r, light)
+    sd = 0.005 * float(b.abs().mean())
+    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    fit = fit_bilinear(n, r, bn, lmax, brdf_lmax=lmax, variance=torch.full_like(b, sd ** 2))
+    lt = fit.lighting
+    det = lt.determined
+    big = light.abs() > 0.1
+    assert float(det[zero].double().mean()) >= 0.3, det[zero]
+    assert not bool(det[big].any())
+    assert torch.isfinite(lt.stderr[det]).all() and torch.isinf(lt.stderr[~det]).all()
+    # gauge f_0 = 1: the fit's lighting is f_0,true (0.5) x the truth (0 stays 0 in any gauge)
+    inside = ((lt.coefficients - 0.5 * light)[det].abs() <= 1.96 * lt.stderr[det]).double()
+    assert 0.90 <= float(inside.mean()) <= 1.0, float(inside.mean())
+    # flags are per coefficient, not per band: some band holds both kinds
+    band = band_of_index(lmax)
+    assert any(bool(det[band == l].any()) and not bool(det[band == l].all())
+               for l in range(1, lmax + 1))
+    amb = fit.ambiguities[2]
+    assert "physically admissible range" in amb["resolution"]

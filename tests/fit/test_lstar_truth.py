@@ -66,18 +66,20 @@ def _check(fit, err, within_one: bool):
 
 
 def test_phong16_measured_lstar_matches_truth():
-    """Phong s = 16, 1% noise: measured l* within one band of the truth-based one (8 vs 9 here)."""
+    """Phong s = 16, 1% noise: measured l* within one band of the truth-based one (8 vs 8 here)."""
     fit, err = _phong_sphere(16.0, seed=16, height=64)
     _check(fit, err, within_one=True)
 
 
 @pytest.mark.slow
-def test_phong64_measured_lstar_conservative():
-    """Phong s = 64: the filter falls slowly near l*, so the 5% precision rule stops ~3 bands early
-    (measured 12, truth 15 at seed 64) — conservative, never a band off by more than 10%.
+@pytest.mark.parametrize("s,seed", [(64.0, 64), (64.0, 7), (32.0, 3)])
+def test_glossy_measured_lstar_within_one(s, seed):
+    """Phong s = 32, 64: measured l* within one band of the truth-based one where the filter
+    falls slowly (issue 12 measured 12 vs 15 at s = 64 with the old "1 s.d. ≤ 5%" rule; the
+    99% error bound of ``conditioning.band_error_bound`` gives 12 vs 13, 12 vs 13, 10 vs 11).
     Rougher lobes lose detail sooner (R&H seed eq. 5).
     """
-    fit64, err64 = _phong_sphere(64.0, seed=64, height=128)
-    _check(fit64, err64, within_one=False)
+    fit, err = _phong_sphere(s, seed=seed, height=128)
+    _check(fit, err, within_one=True)
     fit16, _ = _phong_sphere(16.0, seed=16, height=64)
-    assert fit64.ill_conditioned_from_l > fit16.ill_conditioned_from_l
+    assert fit.ill_conditioned_from_l > fit16.ill_conditioned_from_l
