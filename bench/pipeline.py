@@ -19,7 +19,7 @@ matplotlib's font cache, first-call caches); the table holds the best (least wal
 ``--repeat`` warm runs after it. The import of :mod:`brdfcap.pipeline` is timed once in a fresh
 interpreter (``import`` line).
 
-Run: ``python bench/pipeline.py`` (demo and raw, ~1 min on a quiet 2-core machine);
+Run: ``python bench/pipeline.py`` (demo and raw, two runs each: ~2 min of CPU time);
 ``python bench/pipeline.py --captures demo raw ball --repeat 3 --markdown out.md``.
 Not a test: numbers depend on the machine and its load.
 """
