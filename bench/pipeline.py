@@ -1,10 +1,12 @@
 """End-to-end cost of a run against the cost of decoding its images (issue #18).
 
-For each capture type it prints the per-stage wall time and peak memory of
+For each capture type it prints the per-stage wall and CPU time and peak memory of
 :func:`brdfcap.pipeline.run_capture` (the ``timings`` block of ``results.json``), the **decode
-floor** — the median time of :func:`brdfcap.capture.load.load_capture` alone (reading and
+floor** — the best time of :func:`brdfcap.capture.load.load_capture` alone (reading and
 linearising every input image: the least any run can cost) — and the **ratio** total / floor
-(goal ≤ 1.5). Capture types:
+(goal ≤ 1.5), in wall time and in CPU time. CPU time (user + system, all threads) is the
+number to compare on a machine shared with other jobs: wall time there includes waiting for a
+core. Capture types:
 
 * ``demo``: the built-in ``brdfcap demo`` scene (6 views of 160², EXR, environment lighting);
 * ``raw``: the same sphere at 96² as Bayer DNGs through the simulated raw chain
@@ -12,11 +14,13 @@ linearising every input image: the least any run can cost) — and the **ratio**
 * ``ball``: a DiLiGenT-layout sphere of the DiLiGenT ball's size (96 16-bit PNGs, the sphere
   covering ~15 k pixels per image: ≈ 1.5 M samples), imported with ``import-diligent``.
 
-The first run in the process is reported apart (``cold``: imports, open3d/torch initialisation,
-first-call caches); the table holds the median of the ``--repeat`` warm runs after it.
+The first run in the process is reported apart (``cold``: open3d/torch initialisation,
+matplotlib's font cache, first-call caches); the table holds the best (least wall time) of the
+``--repeat`` warm runs after it. The import of :mod:`brdfcap.pipeline` is timed once in a fresh
+interpreter (``import`` line).
 
-Run: ``python bench/pipeline.py`` (demo and raw, ~1 min on 2 cores);
-``python bench/pipeline.py --captures demo raw ball --repeat 3 --markdown``.
+Run: ``python bench/pipeline.py`` (demo and raw, two runs each: ~2 min of CPU time);
+``python bench/pipeline.py --captures demo raw ball --repeat 3 --markdown out.md``.
 Not a test: numbers depend on the machine and its load.
 """
 
@@ -25,7 +29,8 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -55,15 +60,29 @@ def make_capture(kind: str, root: Path) -> Path:
     raise ValueError(f"unknown capture {kind!r}; valid: {', '.join(CAPTURES)}")
 
 
-def _decode_floor(cap: Path, repeat: int) -> float:
+def _timed(fn, *args):
+    """``fn(*args)``, its wall and CPU seconds."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn(*args)
+    return out, time.perf_counter() - t0, time.process_time() - c0
+
+
+def _decode_floor(cap: Path, repeat: int) -> tuple[float, float]:
+    """Best wall and best CPU time of ``load_capture`` over ``max(repeat, 1) + 1`` calls."""
     from brdfcap.capture.load import load_capture
 
-    ts = []
-    for _ in range(max(repeat, 1)):
-        t0 = time.perf_counter()
-        load_capture(cap)
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+    ts = [_timed(load_capture, cap)[1:] for _ in range(max(repeat, 1) + 1)]
+    return min(t[0] for t in ts), min(t[1] for t in ts)
+
+
+def import_time() -> tuple[float, float]:
+    """Wall and CPU seconds of ``import brdfcap.pipeline`` in a fresh interpreter."""
+    code = ("import time; w, c = time.perf_counter(), time.process_time(); "
+            "import brdfcap.pipeline; "
+            "print(time.perf_counter() - w, time.process_time() - c)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    return float(out[0]), float(out[1])
 
 
 def bench_capture(kind: str, root: Path, repeat: int) -> dict:
@@ -73,38 +92,46 @@ def bench_capture(kind: str, root: Path, repeat: int) -> dict:
     cap = make_capture(kind, root)
     runs = []
     for i in range(repeat + 1):
-        t0 = time.perf_counter()
-        out = run_capture(cap, root / f"out-{kind}-{i}", RunOptions())
-        wall = time.perf_counter() - t0
+        out, wall, cpu = _timed(run_capture, cap, root / f"out-{kind}-{i}", RunOptions())
         t = out.results["timings"]
-        runs.append({"wall_s": wall, "stages": {k: v["wall_s"] for k, v in t["stages"].items()},
+        runs.append({"wall_s": wall, "cpu_s": cpu, "stages": t["stages"],
                      "peak_rss_mb": t["peak_rss_mb"], "n_samples": len(out.samples),
                      "n_images": len(out.capture.views)})
-    warm = runs[1:] or runs
-    stages = {k: statistics.median(r["stages"][k] for r in warm) for k in warm[0]["stages"]}
-    total = statistics.median(r["wall_s"] for r in warm)
-    floor = _decode_floor(cap, repeat)
-    return {"capture": kind, "images": warm[0]["n_images"], "samples": warm[0]["n_samples"],
-            "stages": stages, "write_s": max(total - sum(stages.values()), 0.0),
-            "total_s": total, "floor_s": floor, "ratio": total / floor,
-            "cold_total_s": runs[0]["wall_s"], "cold_fit_s": runs[0]["stages"]["fit"],
+    best = min(runs[1:] or runs, key=lambda r: r["wall_s"])
+    stages = {k: v["wall_s"] for k, v in best["stages"].items()}
+    cpu = {k: v["cpu_s"] for k, v in best["stages"].items()}
+    floor, floor_cpu = _decode_floor(cap, repeat)
+    return {"capture": kind, "images": best["n_images"], "samples": best["n_samples"],
+            "stages": stages, "stages_cpu": cpu,
+            "write_s": max(best["wall_s"] - sum(stages.values()), 0.0),
+            "total_s": best["wall_s"], "total_cpu_s": best["cpu_s"],
+            "floor_s": floor, "floor_cpu_s": floor_cpu, "ratio": best["wall_s"] / floor,
+            "ratio_cpu": best["cpu_s"] / floor_cpu,
+            "cold_total_s": runs[0]["wall_s"], "cold_total_cpu_s": runs[0]["cpu_s"],
+            "cold_fit_s": runs[0]["stages"]["fit"]["wall_s"],
             "peak_rss_mb": max(r["peak_rss_mb"] for r in runs)}
 
 
 def table(rows: list[dict]) -> str:
-    """Markdown table of :func:`bench_capture` rows."""
-    head = ("| capture | images | samples | load (floor run) s | reconstruct s | fit s | report s "
-            "| write s | total s | decode floor s | ratio (goal ≤ 1.5) | report share (goal ≤ 15%) "
-            "| cold total s | cold fit s | peak RSS MiB |")
-    lines = [head, "|" + "---|" * 15]
+    """Markdown table of :func:`bench_capture` rows: wall s / CPU s per cell."""
+    head = ("| capture | images | samples | load s | reconstruct s | fit s | report s | write s "
+            "| total s | decode floor s | ratio (goal ≤ 1.5) | report share (goal ≤ 15%) "
+            "| cold total s | peak RSS MiB |")
+    lines = [head, "|" + "---|" * 14]
     for r in rows:
-        s = r["stages"]
+        s, c = r["stages"], r["stages_cpu"]
+
+        def cell(k):
+            return f"{s[k]:.2f} / {c[k]:.2f}"
         lines.append(
-            f"| {r['capture']} | {r['images']} | {r['samples']:,} | {s['capture']:.2f} | "
-            f"{s['reconstruct']:.2f} | {s['fit']:.3f} | {s['report']:.2f} | {r['write_s']:.2f} | "
-            f"{r['total_s']:.2f} | {r['floor_s']:.2f} | {r['ratio']:.1f}× | "
-            f"{100 * s['report'] / r['total_s']:.0f}% | {r['cold_total_s']:.2f} | "
-            f"{r['cold_fit_s']:.3f} | {r['peak_rss_mb']:.0f} |")
+            f"| {r['capture']} | {r['images']} | {r['samples']:,} | {cell('capture')} | "
+            f"{cell('reconstruct')} | {cell('fit')} | {cell('report')} | {r['write_s']:.2f} | "
+            f"{r['total_s']:.2f} / {r['total_cpu_s']:.2f} | "
+            f"{r['floor_s']:.2f} / {r['floor_cpu_s']:.2f} | "
+            f"{r['ratio']:.1f}× / {r['ratio_cpu']:.1f}× | "
+            f"{100 * s['report'] / r['total_s']:.0f}% / {100 * c['report'] / r['total_cpu_s']:.0f}%"
+            f" | {r['cold_total_s']:.2f} / {r['cold_total_cpu_s']:.2f} | "
+            f"{r['peak_rss_mb']:.0f} |")
     return "\n".join(lines)
 
 
@@ -116,15 +143,20 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
+    imp_wall, imp_cpu = import_time()
     rows = []
     with tempfile.TemporaryDirectory(prefix="brdfcap-bench-") as tmp:
         for kind in args.captures:
             rows.append(bench_capture(kind, Path(tmp), args.repeat))
-            print(f"{kind}: total {rows[-1]['total_s']:.2f} s, floor {rows[-1]['floor_s']:.2f} s",
-                  flush=True)
+            r = rows[-1]
+            print(f"{kind}: total {r['total_s']:.2f} s wall / {r['total_cpu_s']:.2f} s CPU, "
+                  f"floor {r['floor_s']:.2f} / {r['floor_cpu_s']:.2f} s", flush=True)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     head = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch "
-            f"{torch.__version__} ({torch.get_num_threads()} threads); median of {args.repeat} "
-            f"warm run(s) after one cold run")
+            f"{torch.__version__} ({torch.get_num_threads()} threads), load average "
+            f"{load:.1f}; wall s / CPU s (user + system, all threads); best of {args.repeat} "
+            f"warm run(s) after one cold run; `import brdfcap.pipeline` in a fresh interpreter: "
+            f"{imp_wall:.2f} s / {imp_cpu:.2f} s")
     out = f"{head}\n\n{table(rows)}\n"
     print(out)
     if args.markdown:

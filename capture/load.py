@@ -61,6 +61,26 @@ CLIP_LEVELS = (1.0, 65504.0)
 IMPLAUSIBLE_RATIO = 1e4
 
 
+def _channels(op, a: np.ndarray) -> np.ndarray:
+    """Fold ``op`` over the last (channel) axis: ``op(op(a[..., 0], a[..., 1]), a[..., 2])``.
+
+    The same values as ``op.reduce(a, axis=-1)``, 3-5x faster for 3 channels (numpy reduces a
+    short inner axis element by element); an image is read once per run, so this is its cost.
+    """
+    out = a[..., 0].copy()
+    for c in range(1, a.shape[-1]):
+        op(out, a[..., c], out=out)
+    return out
+
+
+def _any_channel(b: np.ndarray) -> np.ndarray:
+    return _channels(np.logical_or, b)
+
+
+def _all_channels(b: np.ndarray) -> np.ndarray:
+    return _channels(np.logical_and, b)
+
+
 def flat_top(pixels: np.ndarray, valid: np.ndarray) -> tuple[float | None, np.ndarray]:
     """Detect a clipped maximum: the pixels whose brightest channel equals the image maximum.
 
@@ -78,7 +98,7 @@ def flat_top(pixels: np.ndarray, valid: np.ndarray) -> tuple[float | None, np.nd
         :data:`FLAT_TOP_MIN_PIXELS`, :data:`FLAT_TOP_FRACTION`) and the ``(H, W)`` bool mask of
         the pixels on it.
     """
-    peak = np.where(valid, pixels.max(axis=2), -np.inf)
+    peak = np.where(valid, _channels(np.maximum, pixels), -np.inf)
     top = float(peak.max()) if peak.size else -np.inf
     none = np.zeros(valid.shape, bool)
     if not top > 0:
@@ -122,13 +142,13 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
             f"{cam.width}x{cam.height}; fix camera.width/height or the image", spec.file)
     name = _display_name(spec.file, config)
     warn = config.warnings.append
-    finite = np.all(np.isfinite(pixels), axis=2)
+    finite = _all_channels(np.isfinite(pixels))
     mask = finite.copy()
     noise_floor = 0.0
     if config.noise.is_known:
         noise_floor = float(np.sqrt(config.noise.variance(np.zeros(1))[0]))
     neg_limit = -NEGATIVE_SIGMAS * noise_floor if np.isfinite(noise_floor) else 0.0
-    neg = np.any(pixels < neg_limit, axis=2) & finite
+    neg = _any_channel(pixels < neg_limit) & finite
     n_neg = int(neg.sum())
     mask &= ~neg
     n_sat = 0
@@ -148,7 +168,7 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
                  "exactly: a clipped image? set 'saturation' in capture.toml to mask them (a "
                  "uniformly lit flat surface also looks like this)")
     if sat_level is not None:
-        sat = np.any(pixels >= sat_level, axis=2) & finite
+        sat = _any_channel(pixels >= sat_level) & finite
         n_sat = int(sat.sum())
         mask &= ~sat
         if integer and config.saturation is None and flat_level is not None and n_sat:
@@ -156,7 +176,7 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
                  "saturated")
     n_dark = 0
     if config.dark_floor is not None:  # all channels in the noise floor (docs/capture-format.md)
-        dark = np.all(pixels < config.dark_floor, axis=2) & finite & mask
+        dark = _all_channels(pixels < config.dark_floor) & finite & mask
         n_dark = int(dark.sum())
         mask &= ~dark
     mag = np.abs(pixels[finite])
@@ -179,9 +199,9 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
         if config.noise.is_known:
             var64 = config.noise.variance(rad64)
         f32 = np.finfo(np.float32).max
-        big = np.any(~(np.abs(rad64) <= f32), axis=2)
+        big = _any_channel(~(np.abs(rad64) <= f32))
         if var64 is not None:
-            big |= np.any(~(var64 <= f32), axis=2)
+            big |= _any_channel(~(var64 <= f32))
     big &= finite
     n_big = int(big.sum())
     if n_big:
@@ -189,7 +209,7 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
         warn(f"{name}: {n_big} pixels out of float32 range after dividing by the exposure "
              f"{spec.exposure:g} (or in their noise variance): masked; check the image's units "
              "and [[images]].exposure")
-    if not (mask & np.any(pixels > 0, axis=2)).any():
+    if not (mask & _any_channel(pixels > 0)).any():
         warn(f"{name}: no usable pixel ({n_neg} negative beyond noise, {n_sat} saturated, "
              f"{int((~finite).sum())} non-finite, {n_big} out of range, the rest zero); check "
              "the file and its [[images]].exposure")

@@ -11,6 +11,7 @@ linear radiance / 99th-percentile white, sRGB transfer; residuals on a diverging
 from __future__ import annotations
 
 import base64
+import functools
 import io
 import math
 from dataclasses import dataclass, field
@@ -32,13 +33,18 @@ _NOT_USED = np.array([0.8, 0.1, 0.1])  # red tint of pixels the fit did not use
 _OUTLINE = np.array([0.0, 1.0, 1.0])  # cyan silhouette of the registered mesh
 
 
+#: zlib level of the panels' PNGs: level 1 encodes a 96-light capture's panels 2.2x faster than
+#: level 6 for 8 % more bytes (``docs/performance.md``); lossless either way.
+PNG_LEVEL = 1
+
+
 def png_data_uri(rgb: np.ndarray) -> str:
-    """``(H, W, 3)`` floats in [0, 1] (or uint8) -> ``data:image/png;base64,...`` (zlib level 6)."""
+    """``(H, W, 3)`` floats in [0, 1] (or uint8) -> ``data:image/png;base64,...`` (lossless)."""
     a = np.asarray(rgb)
     if a.dtype != np.uint8:
         a = (np.clip(np.nan_to_num(a, nan=0.0), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     buf = io.BytesIO()
-    Image.fromarray(a).save(buf, format="PNG", compress_level=6)
+    Image.fromarray(a).save(buf, format="PNG", compress_level=PNG_LEVEL)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
@@ -83,12 +89,24 @@ def _outline(mask: np.ndarray) -> np.ndarray:
     return m & ~inner
 
 
-def diverging_rgb(x: np.ndarray, lim: float) -> np.ndarray:
-    """Residuals -> RGB on matplotlib's ``RdBu_r`` (blue < 0 < red); NaN (not fitted) grey."""
+@functools.lru_cache(maxsize=1)
+def _rdbu_lut() -> np.ndarray:
+    """Matplotlib's ``RdBu_r`` lookup table, ``(N, 3)``."""
     from matplotlib import colormaps
 
+    cmap = colormaps["RdBu_r"]
+    return cmap(np.arange(cmap.N))[:, :3]
+
+
+def diverging_rgb(x: np.ndarray, lim: float) -> np.ndarray:
+    """Residuals -> RGB on matplotlib's ``RdBu_r`` (blue < 0 < red); NaN (not fitted) grey.
+
+    The table lookup of ``Colormap.__call__`` for values in [0, 1] (entry ``floor(t N)``, 1 ->
+    the last), without its per-call copies and masks.
+    """
     t = np.clip((np.nan_to_num(x, nan=0.0) / lim + 1) / 2, 0, 1)
-    rgb = colormaps["RdBu_r"](t)[..., :3]
+    lut = _rdbu_lut()
+    rgb = lut[np.minimum((t * len(lut)).astype(np.intp), len(lut) - 1)]
     rgb[~np.isfinite(x)] = 0.85
     return rgb
 
@@ -157,7 +175,8 @@ def input_and_residual_panels(observed: list[np.ndarray], rendered: list[np.ndar
     allv = np.concatenate([u.ravel() for u in used]) if used else np.ones(1)
     pos = allv[allv > 0]
     white = float(np.percentile(pos, 99)) if pos.size else 1.0
-    res = [np.where(m, (_rgb3(o) - _rgb3(r)).mean(-1), np.nan)[rs, cs]
+    # crop first: every per-pixel step below works on the object's box only
+    res = [np.where(m[rs, cs], (_rgb3(o[rs, cs]) - _rgb3(r[rs, cs])).mean(-1), np.nan)
            for o, r, m in zip(observed, rendered, masks)]
     fin = np.concatenate([np.abs(x[np.isfinite(x)]) for x in res]) if res else np.zeros(0)
     lim = float(np.percentile(fin, 99)) if fin.size else 1.0
@@ -166,7 +185,7 @@ def input_and_residual_panels(observed: list[np.ndarray], rendered: list[np.ndar
     drawn = False
     in_tiles, strips, sheet_in, sheet_res = [], [], [], []
     for i in range(n):
-        o, m = _rgb3(observed[i])[rs, cs], masks[i][rs, cs]  # crop first: encode less
+        o, m = _rgb3(observed[i][rs, cs]), masks[i][rs, cs]  # crop first: encode less
         tile = display_encode(o, white)
         tile[~m] = 0.6 * tile[~m] + 0.4 * _NOT_USED
         sil = silhouettes[i] if silhouettes is not None and i < len(silhouettes) else None
@@ -176,7 +195,7 @@ def input_and_residual_panels(observed: list[np.ndarray], rendered: list[np.ndar
         rtile = diverging_rgb(res[i], lim)
         if i in shown:
             in_tiles.append(png_data_uri(_resize(tile, _TILE)))
-            ren = display_encode(np.where(m[..., None], _rgb3(rendered[i])[rs, cs], 0.0), white)
+            ren = display_encode(np.where(m[..., None], _rgb3(rendered[i][rs, cs]), 0.0), white)
             gap = np.ones((tile.shape[0], 3, 3))
             strips.append(png_data_uri(_resize(np.concatenate([tile, gap, ren, gap, rtile], 1),
                                                3 * _TILE)))

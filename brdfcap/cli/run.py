@@ -105,11 +105,13 @@ def _after_run(out_dir: Path, profile: bool, export: bool, debug: bool) -> None:
     if profile:
         t = json.loads((out_dir / "results.json").read_text()).get("timings") or {}
         for name, st in (t.get("stages") or {}).items():
-            click.echo(f"  {name:<12} {st['wall_s']:8.3f} s   peak {st['peak_rss_mb']:8.0f} MiB"
+            click.echo(f"  {name:<12} {st['wall_s']:8.3f} s   cpu {st.get('cpu_s', 0):8.3f} s"
+                       f"   peak {st['peak_rss_mb']:8.0f} MiB"
                        + (f"   cuda {st['cuda_peak_mb']:.0f} MiB" if "cuda_peak_mb" in st
                           else ""))
         if t:
-            click.echo(f"  {'total':<12} {t['total_s']:8.3f} s   peak {t['peak_rss_mb']:8.0f} MiB"
+            click.echo(f"  {'total':<12} {t['total_s']:8.3f} s   "
+                       f"cpu {t.get('total_cpu_s', 0):8.3f} s   peak {t['peak_rss_mb']:8.0f} MiB"
                        f"  ({t.get('memory', '')})")
     if export:
         try:

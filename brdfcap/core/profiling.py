@@ -1,4 +1,8 @@
-"""Per-stage wall time and peak memory of a run (``results.json`` ``timings``, ``--profile``).
+"""Per-stage wall time, CPU time and peak memory of a run (``results.json`` ``timings``).
+
+CPU time (``cpu_s``) is the process's user + system time over the stage, all threads
+(:func:`time.process_time`): on a machine shared with other jobs the wall time includes
+waiting for a core and the CPU time does not; with ``T`` busy threads it can exceed the wall.
 
 Peak memory is the resident set size (RSS) of the process, sampled every ``interval`` seconds
 by a daemon thread reading ``/proc/self/statm`` (Linux; elsewhere the process-wide
@@ -43,7 +47,7 @@ class StageProfiler:
     ...     _ = sum(range(1000))
     >>> rec = p.record()
     >>> sorted(rec["stages"]["work"])
-    ['peak_rss_mb', 'rss_start_mb', 'wall_s']
+    ['cpu_s', 'peak_rss_mb', 'rss_start_mb', 'wall_s']
     """
 
     def __init__(self, interval: float = 0.01, cuda: bool = False):
@@ -74,15 +78,15 @@ class StageProfiler:
             self._peak = start
         if self.cuda:
             torch.cuda.reset_peak_memory_stats()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
-            wall = time.perf_counter() - t0
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             end = rss_mb()
             with self._lock:
                 peak = max(self._peak, end)
-            rec = {"wall_s": wall, "rss_start_mb": start, "peak_rss_mb": peak}
+            rec = {"wall_s": wall, "cpu_s": cpu, "rss_start_mb": start, "peak_rss_mb": peak}
             if self.cuda:
                 torch.cuda.synchronize()
                 rec["cuda_peak_mb"] = torch.cuda.max_memory_allocated() / 2**20
@@ -99,6 +103,7 @@ class StageProfiler:
         self.close()
         return {"stages": {k: dict(v) for k, v in self.stages.items()},
                 "total_s": sum(v["wall_s"] for v in self.stages.values()),
+                "total_cpu_s": sum(v["cpu_s"] for v in self.stages.values()),
                 "peak_rss_mb": max((v["peak_rss_mb"] for v in self.stages.values()),
                                    default=rss_mb()),
                 "memory": f"resident set size sampled every {self.interval * 1000:g} ms"

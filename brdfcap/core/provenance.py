@@ -241,17 +241,31 @@ def config_record(run_options, cli: dict | None = None, prov: dict | None = None
     }
 
 
+#: Module -> distribution of the libraries :func:`versions` reports.
+_VERSION_MODULES = {"open3d": "open3d", "kornia": "kornia", "rawpy": "rawpy",
+                    "colour": "colour-science", "OpenImageIO": "OpenImageIO", "scipy": "scipy"}
+
+
 def versions() -> dict[str, str]:
-    """Versions of brdfcap and the libraries that shape its numbers (imported modules)."""
+    """Versions of brdfcap and the libraries that shape its numbers.
+
+    A module this process has imported reports its ``__version__`` (the code that ran); one it
+    has not (open3d in a normal-map run, kornia without lens distortion) its package metadata,
+    without importing it: the import would cost a first run 0.5-1.3 s of CPU each for a
+    version string (``docs/performance.md``). For these two the strings are the same.
+    """
     import numpy as np
     import torch
 
     out = {"brdfcap": __version__, "python": platform.python_version(),
            "torch": torch.__version__, "numpy": np.__version__}
-    for mod in ("open3d", "kornia", "rawpy", "colour", "OpenImageIO", "scipy"):
-        try:
-            m = __import__(mod)
+    for mod, dist in _VERSION_MODULES.items():
+        m = sys.modules.get(mod)
+        if m is not None:
             out[mod] = str(getattr(m, "__version__", "unknown"))
-        except Exception:  # pragma: no cover - optional at runtime
+            continue
+        try:
+            out[mod] = _md.version(dist)
+        except _md.PackageNotFoundError:
             out[mod] = "not installed"
     return out
