@@ -15,8 +15,10 @@ import math
 
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
-from brdfcap.fit.brdf_models import diffuse_filter, phong_sh_filter
+from brdfcap.fit.brdf_models import BRDFSpec, diffuse_filter, phong_sh_filter, render_sh
 from brdfcap.fit.sh import band_of_index
+
+from brdfcap.testing import random_lighting, unit
 
 
 def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples):
