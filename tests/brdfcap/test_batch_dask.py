@@ -26,6 +26,8 @@ from brdfcap.pipeline import RunOptions
 NAMES = [f"cap_{i:02d}" for i in range(8)]
 #: results.json keys that hold numbers; everything else (timestamps, host, timings) may differ
 NUMERIC_KEYS = ("lighting", "conditioning", "brdf", "fit", "provenance")
+#: split-half statistics (differences of two fits: most digits cancel)
+DIFFERENCE_STATISTICS = {"reproducibility_chi2", "reproducibility_limit", "widened_by"}
 
 
 @pytest.fixture(scope="module")
@@ -58,6 +60,8 @@ def _assert_same(a, b, where: str = "") -> None:
     torch threads; a different thread count changes the order of floating-point sums, hence the
     last bits. The evidence-based lighting fit (eigendecompositions of Gram matrices with
     condition numbers up to ~1e12, docs/fitting.md) amplifies them: observed 1.5e-12 relative.
+    Statistics of the *difference* of two half-sample fits (the split-half reproducibility
+    check) cancel most of their digits and get 1e-6: observed 1.1e-9 relative.
     """
     if isinstance(a, dict):
         assert isinstance(b, dict) and a.keys() == b.keys(), where
@@ -68,7 +72,8 @@ def _assert_same(a, b, where: str = "") -> None:
         for i, (x, y) in enumerate(zip(a, b)):
             _assert_same(x, y, f"{where}[{i}]")
     elif isinstance(a, float) and isinstance(b, float):
-        assert math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12), (where, a, b)
+        tol = 1e-6 if where.rsplit(".", 1)[-1] in DIFFERENCE_STATISTICS else 1e-9
+        assert math.isclose(a, b, rel_tol=tol, abs_tol=1e-12), (where, a, b)
     else:
         assert a == b, (where, a, b)
 
