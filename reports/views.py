@@ -127,11 +127,27 @@ def headline(results: dict) -> dict:
         c0 = (lt.get("coefficients") or [[]])[0]
         e0 = (lt.get("stderr") or [[]])[0]
         pred = (cond.get("lighting") or {}).get("predicted") or lt.get("prediction")
+        det0 = (lt.get("determined") or [[]])[0]
+        gauge_fixed = bool(det0) and not any(bool(x) for x in det0) and \
+            not any(_is_num(x) for x in (e0 or []))
         rows.append({"quantity": f"lighting, SH to l = {lt.get('lmax')}",
-                     "value": "L₀₀ " + fmt_rgb_pm(c0, e0),
+                     "value": "L₀₀ " + fmt_rgb_pm(c0, e0)
+                     + (" (set by the gauge, not determined alone)" if gauge_fixed else ""),
                      "measured": _measured_text(lt.get("ill_conditioned_from_l")),
                      "predicted": _prediction_text(pred),
                      "cite": rh_citation((pred or {}).get("model", model))})
+    gi = results.get("gauge_invariant") or {}
+    if gi.get("quantities"):  # --problem both: what the images determine whatever the gauge
+        q, se = gi["quantities"], gi.get("stderr") or []
+        dc = [(x, se[i] if i < len(se) else None) for i, x in enumerate(q) if x.get("kind") == "dc"]
+        n_det = sum(bool(d) for d in gi.get("determined") or [])
+        rows.append({"quantity": "gauge-invariant products",
+                     "value": ("total DC (kd + f₀) L₀₀ "
+                               + fmt_rgb_pm([x["value"] for x, _ in dc], [e for _, e in dc])
+                               + "; " if dc else "")
+                     + f"{n_det} of {len(q)} products determined (the rest move with an "
+                       "ambiguity)",
+                     "measured": "", "predicted": "", "cite": ""})
     params = brdf.get("parameters") or {}
     errs = _param_errors(brdf)
     shown = [k for k in _HEAD_PARAMS if k in params and (_is_num(params[k])
