@@ -36,7 +36,7 @@ from .conditioning import (
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
-from .solve import noise_weights, restrict, solve_bayes, solve_wls
+from .solve import apply_design, noise_weights, restrict, solve_bayes, solve_wls
 
 __all__ = ["fit_lighting", "lighting_design", "internal_lmax", "SHRows", "LiveRows", "INTERNAL_REL",
            "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES", "SH_TABLE_MEMORY"]
@@ -211,13 +211,6 @@ class LiveRows:
         return self._rows_into(None, s, e)
 
 
-def _apply(a: torch.Tensor, scale: torch.Tensor | None, x: torch.Tensor) -> torch.Tensor:
-    """Predicted observations ``(n, C)`` of a design block and coefficients ``(K, C)``."""
-    if a.ndim == 2:
-        return a @ (x if scale is None else x * scale)
-    return torch.einsum("nck,kc->nc", a, x)
-
-
 def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> int:
     """Smallest bandwidth the lighting is solved to: what the BRDF filter carries above ``lmax``.
 
@@ -333,7 +326,7 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
                     band_penalty=band_penalty, noise_source=src, chunk=chunk,
                     channel_scale=cscale)
     if noise_model is not None and getattr(noise_model, "is_known", False):
-        pred = torch.cat([_apply(design(s, min(s + chunk, len(n))), cscale, sol.coefficients)
+        pred = torch.cat([apply_design(design(s, min(s + chunk, len(n))), cscale, sol.coefficients)
                           for s in range(0, len(n), chunk)])
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
                                dtype=torch.float64, device=n.device)

@@ -188,6 +188,29 @@ def _design_chunks(design, n: int, chunk: int):
             yield s, min(s + chunk, n), design[s:s + chunk]
 
 
+def apply_design(a: torch.Tensor, scale: torch.Tensor | None, x: torch.Tensor) -> torch.Tensor:
+    """Predicted observations ``(n, C)`` of a design block and coefficients ``(K, C)``.
+
+    ``a`` is ``(n, K)`` (one design for every channel, times ``scale`` per channel when given)
+    or ``(n, C, K)`` (a design per channel).
+    """
+    a = a.to(torch.float64)
+    if a.ndim == 2:
+        return a @ (x if scale is None else x * scale)
+    return torch.einsum("nck,kc->nc", a, x)
+
+
+def _band_singular_values(gram: torch.Tensor, band: torch.Tensor) -> list[torch.Tensor]:
+    """Per band ``l``: the ``(C, 2l+1)`` singular values (descending) of each channel's block."""
+    out = []
+    for l in range(int(band.max()) + 1):
+        idx = band == l
+        gb = gram[:, idx][:, :, idx]
+        out.append(torch.linalg.eigvalsh(0.5 * (gb + gb.transpose(-1, -2))).clamp_min(0.0)
+                   .sqrt().flip(-1))
+    return out
+
+
 def _usable(b: torch.Tensor, w: torch.Tensor, band: torch.Tensor):
     """Float64 ``b``, ``w`` with non-finite or non-positive weights zeroed (and their ``b``).
 
@@ -299,7 +322,6 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
     chi2 = torch.zeros(nch, dtype=torch.float64, device=dev)
     dofs = torch.zeros(nch, dtype=torch.float64, device=dev)
     covs = torch.zeros(nch, k, k, dtype=torch.float64, device=dev) if keep_covariance else None
-    band_sv: list[list[torch.Tensor]] = [[] for _ in range(int(band.max()) + 1)]
     grid = GCV_GRID.to(dev)
     rss0_all = torch.zeros(nch, dtype=torch.float64, device=dev)
     # pass 1: eigen-decompositions and the unregularised solution (for an accurate RSS(0))
@@ -315,17 +337,8 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         ct = u.T @ (ps * rhs[c])
         x0[:, c] = ps * (u[:, keep] @ (ct[keep] / ev[keep]))
         eig.append((ev, u, keep, ct, scale))
-        for l in range(len(band_sv)):
-            idx = band == l
-            gb = gram[c][idx][:, idx]
-            band_sv[l].append(torch.linalg.eigvalsh(0.5 * (gb + gb.T)).clamp_min(0.0).sqrt()
-                              .flip(0))
     for s, e, a in _design_chunks(design, n, chunk):
-        a = a.to(torch.float64)
-        if a.ndim == 2:
-            pred = a @ (x0 if cs is None else x0 * cs)
-        else:
-            pred = torch.einsum("nck,kc->nc", a, x0)
+        pred = apply_design(a, cs, x0)
         rss0_all += (w[s:e] * (b[s:e] - pred) ** 2).sum(0)
 
     for c in range(nch):
@@ -370,7 +383,7 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         stderr_unregularised=se_unreg, determined=determined,
         resolution=resol, lam=lam_abs, lam_rel=lam_rel, chi2_reduced=chi2, dof=dofs,
         rule=rule_used, noise_source=noise_source, n_samples=int(nuse.max()), band=band,
-        band_singular=[torch.stack(v) for v in band_sv], covariance=covs)
+        band_singular=_band_singular_values(gram, band), covariance=covs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -721,7 +734,6 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     if halves is not None:
         split_x = torch.zeros(2, k, nch, dtype=torch.float64, device=dev)
         split_cov = torch.zeros(2, nch, k, k, dtype=torch.float64, device=dev)
-    band_sv: list[list[torch.Tensor]] = [[] for _ in range(int(band.max()) + 1)]
     half_cache: dict = {}
     for c in range(nch):
         m2lp, beta, lam, s2, scale = best[c]
@@ -755,20 +767,11 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
                 inv = torch.cholesky_inverse(ch)
                 split_x[h, :, c] = pu @ (inv @ (pu.T @ halves[1][h, c]))
                 split_cov[h, c] = pu @ inv @ pu.T * s2
-        for l in range(len(band_sv)):
-            idx = band == l
-            gb = gram[c][idx][:, idx]
-            band_sv[l].append(torch.linalg.eigvalsh(0.5 * (gb + gb.T)).clamp_min(0.0).sqrt()
-                              .flip(0))
     # residual pass: exact RSS for χ², and the residual itself for the adequacy checks
     res = torch.zeros_like(b)
     coef_p = coef if cols is None else coef[cols[:kp]]
     for s, e, a in _design_chunks(design, n, chunk):
-        a = a.to(torch.float64)
-        if a.ndim == 2:
-            pred = a @ (coef_p if cs is None else coef_p * cs)
-        else:
-            pred = torch.einsum("nck,kc->nc", a, coef_p)
+        pred = apply_design(a, cs, coef_p)
         res[s:e] = torch.where(w[s:e] > 0, b[s:e] - pred, torch.zeros_like(pred))
     wres = res * w.sqrt()
     dof = (nuse.to(torch.float64) - trh).clamp_min(1.0)
@@ -784,7 +787,7 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         coefficients=coef, coefficients_unregularised=x0, stderr=se,
         stderr_unregularised=se_unreg, determined=det, resolution=resol, lam=lam_abs,
         lam_rel=lam_rel, chi2_reduced=chi2, dof=dof, rule="evidence", noise_source=noise_source,
-        n_samples=int(nuse.max()), band=band, band_singular=[torch.stack(v) for v in band_sv],
+        n_samples=int(nuse.max()), band=band, band_singular=_band_singular_values(gram, band),
         covariance=covs, bayes=bayes)
 
 
