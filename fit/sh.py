@@ -423,14 +423,28 @@ def _sphericart_calc(lmax: int):
     return _sphericart().SphericalHarmonics(lmax)
 
 
+#: The torch (= OpenMP) thread count of the process's first sphericart call. sphericart-torch
+#: 2.0.4 sizes per-thread work buffers once; called after ``torch.set_num_threads`` changed the
+#: count, its extra threads write past them and corrupt the heap (reproduced: alternating 1 and
+#: 2 threads segfaults within a few hundred calls; the torch engine does not). Calls at any other
+#: thread count therefore run the torch engine.
+_sphericart_threads: int | None = None
+
+
 def _use_sphericart(d: torch.Tensor, lmax: int) -> bool:
+    global _sphericart_threads
     if _backend != "auto" or d.dtype not in SPHERICART_LMAX or lmax > SPHERICART_LMAX[d.dtype]:
         return False
     if d.requires_grad and torch.is_grad_enabled():
         return False
     if d.device.type not in ("cpu", "cuda") or d.numel() == 0:
         return False
-    return _sphericart() is not None
+    if _sphericart() is None:
+        return False
+    threads = torch.get_num_threads()
+    if _sphericart_threads is None:
+        _sphericart_threads = threads
+    return threads == _sphericart_threads
 
 
 def real_sh(directions: torch.Tensor, lmax: int) -> torch.Tensor:

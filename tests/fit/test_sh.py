@@ -354,3 +354,24 @@ def test_sphericart_breakdown_justifies_thresholds():
     assert not err(24, torch.float32) < 1e-3
     ours = (real_sh(d.float(), 24).double() - ref[24]).abs().max().item()
     assert ours < 1e-4
+
+
+def test_sphericart_only_at_its_first_thread_count():
+    """sphericart-torch 2.0.4 corrupts the heap when called after the thread count changed
+    (alternating torch.set_num_threads(1)/(2) segfaulted within a few hundred calls): calls at
+    another thread count than the first sphericart call's must run the torch engine.
+    """
+    if S._sphericart() is None:
+        pytest.skip("sphericart-torch not installed")
+    old_threads, old_first = torch.get_num_threads(), S._sphericart_threads
+    d = torch.nn.functional.normalize(torch.randn(64, 3, dtype=torch.float64), dim=-1)
+    try:
+        S._sphericart_threads = None
+        torch.set_num_threads(1)
+        assert S._use_sphericart(d, 4) and S._sphericart_threads == 1
+        torch.set_num_threads(2)
+        assert not S._use_sphericart(d, 4)
+        torch.testing.assert_close(S.real_sh(d, 4), S._RealSH.apply(d, 4), rtol=0, atol=1e-13)
+    finally:
+        torch.set_num_threads(old_threads)
+        S._sphericart_threads = old_first
