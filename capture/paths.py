@@ -37,7 +37,7 @@ _SPECIAL_ROOTS = (Path("/proc"), Path("/sys"), Path("/dev"))
 #: Keys of ``capture.toml`` that name input files (``[i]`` = every entry of an array of tables).
 PATH_KEYS = ("geometry.mesh", "geometry.normal_map", "geometry.mask", "geometry.scan",
              "lighting.probe", "lighting.coefficients", "texture_model.file",
-             "colour.checker_image", "color.checker_image",
+             "colour.checker_image", "color.checker_image", "colour_reference.checker_image",
              "raw.dark_frame", "raw.flat_field", "raw.noise_profile", "raw.noise_darks",
              "raw.noise_flats", "images[i].file", "images[i].mask", "images[i].raw.bracket",
              "images[i].raw.dark_frame", "images[i].raw.flat_field",
@@ -221,17 +221,23 @@ def input_files(capture_dir: str | Path) -> dict[str, Path]:
     """``capture.toml`` and every existing file it names as an input, keyed by relative path.
 
     These, and nothing else, enter ``results.json["provenance"]`` (their SHA-256) and decide
-    whether a batch re-run skips the capture. Each path is checked by :func:`resolve_input`
-    first, so a path leading outside the capture (without the opt-outs) or naming a special
-    file raises instead of being hashed. Keys are relative to the capture directory (``..``
-    appears for a shared file under ``[paths] root``).
+    whether a batch re-run skips the capture. The capture folders a ``[colour_reference]`` of
+    ``kind = "shared-albedo"`` names under ``captures`` are read by the run, so their input
+    files (``capture.toml`` and the files it names, recursively) are listed too. Each path is
+    checked by :func:`resolve_input` first, so a path leading outside the capture (without the
+    opt-outs) or naming a special file raises instead of being hashed. Keys are relative to the
+    capture directory (``..`` appears for a shared file under ``[paths] root``).
 
     Raises
     ------
     CaptureError
         A path that may not be read (:func:`resolve_input`), naming the key and the file.
     """
-    root = Path(capture_dir).resolve()
+    return _input_files(Path(capture_dir).resolve(), frozenset())
+
+
+def _input_files(root: Path, seen: frozenset[Path]) -> dict[str, Path]:
+    """:func:`input_files` of the resolved capture ``root``; ``seen``: captures already listed."""
     toml_path = root / "capture.toml"
     files = {"capture.toml": toml_path}
     try:
@@ -244,4 +250,27 @@ def input_files(capture_dir: str | Path) -> dict[str, Path]:
         if p.is_file():
             real = p.resolve()
             files.setdefault(Path(os.path.relpath(real, root)).as_posix(), real)
+    # a shared-albedo colour reference reads the other captures it names (their images decide
+    # this capture's colour transform): their inputs are this capture's inputs too
+    seen = seen | {root}
+    for other in _reference_captures(root, doc):
+        if other in seen:
+            continue
+        for real in _input_files(other, seen).values():
+            files.setdefault(Path(os.path.relpath(real, root)).as_posix(), real)
     return dict(sorted(files.items()))
+
+
+def _reference_captures(root: Path, doc: dict) -> list[Path]:
+    """Capture folders ``[colour_reference] captures`` names (existing ones, resolved)."""
+    tab = doc.get("colour_reference")
+    caps = tab.get("captures") if isinstance(tab, dict) else None
+    if not isinstance(caps, list):
+        return []
+    out = []
+    for c in caps:
+        if isinstance(c, str) and c and "\0" not in c:
+            d = (root / c).resolve()
+            if (d / "capture.toml").is_file():
+                out.append(d)
+    return out

@@ -119,6 +119,40 @@ def test_provenance_files_are_inputs_not_any_string(cap):
     assert sorted(input_files(cap)) == ["capture.toml", "images/a.exr"]
 
 
+def test_shared_albedo_reference_captures_are_inputs(tmp_path):
+    """A shared-albedo colour reference reads the other captures: their files enter the hash.
+
+    Editing an image of the *other* capture must change this capture's input digest (else a
+    batch re-run would skip a capture whose colour transform changed); cycles terminate.
+    """
+    from brdfcap.core.provenance import hash_files
+
+    a, b = tmp_path / "lit_a", tmp_path / "lit_b"
+    for d, other in ((a, "../lit_b"), (b, "../lit_a")):
+        (d / "images").mkdir(parents=True)
+        (d / "images" / "v0.exr").write_bytes(d.name.encode())
+        (d / "capture.toml").write_text(
+            '[[images]]\nfile = "images/v0.exr"\n[colour_reference]\n'
+            f'kind = "shared-albedo"\ncaptures = ["{other}"]\n')
+    files = input_files(a)
+    assert sorted(files) == ["../lit_b/capture.toml", "../lit_b/images/v0.exr", "capture.toml",
+                             "images/v0.exr"]
+    before = hash_files(files)[0]
+    (b / "images" / "v0.exr").write_bytes(b"edited")
+    assert hash_files(input_files(a))[0] != before
+
+
+def test_colour_reference_checker_image_is_a_confined_input(cap):
+    (cap / "chart.exr").write_bytes(b"exr")
+    (cap / "capture.toml").write_text('[colour_reference]\nkind = "colorchecker"\n'
+                                      'checker_image = "chart.exr"\n')
+    assert sorted(input_files(cap)) == ["capture.toml", "chart.exr"]
+    (cap / "capture.toml").write_text('[colour_reference]\nkind = "colorchecker"\n'
+                                      'checker_image = "../../secret.txt"\n')
+    with pytest.raises(CaptureError, match="colour_reference.checker_image"):
+        input_files(cap)
+
+
 def test_load_config_refuses_an_escaping_mesh(grace_capture, tmp_path):
     """The loader checks every declared input: one line naming the key, the file and the fix."""
     import shutil
