@@ -262,11 +262,15 @@ class LinearImage:
     chain: dict = field(default_factory=dict)
 
     def info(self) -> dict:
-        """Return the chain as a flat ``{str: str | number}`` dict (lists formatted)."""
+        """Return the chain as a JSON-ready ``{str: str | number | list}`` dict.
+
+        Per-channel values stay numbers (``black_level: [512, 512, 512, 512]``, the 3×3
+        ``camera_to_working`` as rows); integral levels are integers.
+        """
         out = {}
         for k, v in self.chain.items():
             if isinstance(v, (list, tuple, np.ndarray)):
-                out[k] = _fmt(np.asarray(v, dtype=object))
+                out[k] = _plain(v)
             elif v is None:
                 out[k] = "none"
             elif isinstance(v, float) and v.is_integer() and abs(v) < 2**53:
@@ -276,13 +280,16 @@ class LinearImage:
         return out
 
 
-def _fmt(a) -> str:
-    if a.ndim == 0:
-        v = a.item()
-        return f"{v:.6g}" if isinstance(v, (float, np.floating)) else str(v)
-    if a.ndim == 1:
-        return "[" + ", ".join(_fmt(np.asarray(x, dtype=object)) for x in a) + "]"
-    return "[" + "; ".join(_fmt(r)[1:-1] for r in a) + "]"
+def _plain(v):
+    """Nested lists of plain numbers (integral floats as ints) or strings, for JSON."""
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [_plain(x) for x in v]
+    if isinstance(v, (np.integer, int)) and not isinstance(v, bool):
+        return int(v)
+    if isinstance(v, (np.floating, float)):
+        f = float(v)
+        return int(f) if f.is_integer() and abs(f) < 2**53 else f
+    return v if isinstance(v, (str, bool)) or v is None else str(v)
 
 
 def exposure_factor(shutter: float, aperture: float, iso: float) -> float:

@@ -91,7 +91,7 @@ def linearise_raw_view(index: int, spec: ImageSpec, config: CaptureConfig) -> Vi
         radiance, mask, variance = rad, ok.all(axis=2), var
         info["bracket"] = ", ".join(p.name for p in [spec.file, *bracket])
         info["bracket_weights"] = binfo["weights"]
-        info["saturated_fraction"] = "; ".join(m.info()["saturated_fraction"] for m in members)
+        info["saturated_fraction"] = [m.info()["saturated_fraction"] for m in members]
         info["masked_fraction"] = float(1.0 - mask.mean())
     return View(index=index, spec=spec, radiance=radiance, mask=mask, variance=variance,
                 info=info)

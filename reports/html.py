@@ -39,11 +39,18 @@ def _fmt(v) -> str:
     """One table cell: numbers to 4 significant digits, flat lists per channel, words else."""
     if is_number_list(v):
         return fmt_rgb(v, 4)
+    if _is_matrix(v):  # e.g. a raw image's 3x3 camera_to_working, row by row
+        return "[" + "; ".join(", ".join(fmt_num(x, 4) for x in row) for row in v) + "]"
     if isinstance(v, (list, tuple)):
         return f"{len(v)} entries"
     if isinstance(v, dict):
         return f"{len(v)} fields"
     return fmt_num(v, 4)
+
+
+def _is_matrix(v) -> bool:
+    """Tell whether ``v`` is a non-empty list of flat number lists (matrix, per-frame lists)."""
+    return isinstance(v, (list, tuple)) and len(v) > 0 and all(is_number_list(r) for r in v)
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
@@ -69,8 +76,9 @@ def _image_tables(images: list[dict]) -> tuple[list[str], dict[str, dict]]:
         for k, v in img.items():
             if isinstance(v, dict):
                 nested.setdefault(k, {"cols": [], "rows": []})
-            elif not isinstance(v, (list, tuple)) and k not in keys:
-                keys.append(k)
+            elif ((not isinstance(v, (list, tuple)) or is_number_list(v) or _is_matrix(v))
+                  and k not in keys):
+                keys.append(k)  # per-channel lists and small matrices are shown, formatted
     for name, tab in nested.items():
         for img in images:
             flat = _flatten(img.get(name) or {})

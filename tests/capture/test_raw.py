@@ -126,13 +126,25 @@ def test_real_dng_noise_profile_gives_variance(real):
 
 
 @needs_real
-def test_chain_is_json_serialisable_and_flat_info(real):
+def test_chain_is_json_serialisable_and_info_keeps_numbers(real):
+    """The record in results.json keeps per-channel values as numbers, not text."""
     json.dumps(real.chain)
     info = real.info()
-    assert all(isinstance(v, (str, int, float)) for v in info.values())
+    assert json.loads(json.dumps(info)) == info
+
+    def plain(v):
+        if isinstance(v, list):
+            return all(plain(x) for x in v)
+        return isinstance(v, (str, int, float)) and not isinstance(v, bool)
+
+    assert all(plain(v) for v in info.values())
     for key in ("black_level", "white_level", "white_balance", "xyz_to_camera",
                 "saturated_fraction", "demosaic", "working_space", "exposure"):
         assert key in info
+    assert info["white_balance"] == pytest.approx(real.chain["white_balance"])
+    assert len(info["camera_to_working"]) == 3 and all(
+        isinstance(x, float) for row in info["camera_to_working"] for x in row)
+    assert all(isinstance(x, (int, float)) for x in info["black_level"])
 
 
 @needs_real

@@ -55,8 +55,11 @@ def test_raw_capture_with_noise_recovers_lighting(raw_capture, tmp_path):
     assert img["source"] == "camera raw"
     assert img["noise_source"] == "DNG NoiseProfile"
     assert img["demosaic"].startswith("linear")
+    assert img["black_level"] == [512, 512, 512]  # numbers in results.json, not text
+    assert len(img["camera_to_working"]) == 3
     html = (tmp_path / "out" / "report.html").read_text()
-    for needle in ("DNG NoiseProfile", "white_balance", "colour_matrix_source", "[512, 512, 512]"):
+    for needle in ("DNG NoiseProfile", "white_balance", "colour_matrix_source",
+                   "black_level = R 512, G 512, B 512", "camera_to_working = ["):
         assert needle in html
 
 
@@ -180,6 +183,8 @@ def test_simulated_brackets_are_merged_on_load(tmp_path):
     for v, r in zip(raw.views, ref.views):
         assert v.info["bracket"].count(".dng") == 3
         assert v.info["bracket_weights"] == "inverse variance"
+        sat = v.info["saturated_fraction"]  # one per-channel list per frame of the bracket
+        assert len(sat) == 3 and all(len(f) == 3 for f in sat) and max(map(max, sat)) > 0
         lit = v.mask & (r.radiance.min(axis=2) > 0.05 * r.radiance.max())
         assert lit.sum() > 0.5 * (r.radiance.min(axis=2) > 0.05 * r.radiance.max()).sum()
         np.testing.assert_allclose(v.radiance[lit].mean(0), r.radiance[lit].mean(0), rtol=0.01)
