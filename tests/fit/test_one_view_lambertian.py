@@ -99,3 +99,29 @@ def test_one_view_light_hidden_behind_the_sphere():
         assert not row["determined"] and not f.determined[0].any()
         assert f.ill_conditioned_from_l == 0
         assert row["prior_dominated"] and "prior-dominated" in row["reason"], row
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("probe", ["ennis", "grace", "pisa", "uffizi", "wells"])
+def test_one_view_every_probe_claims_only_what_it_can(request, probe):
+    """One view under each reference probe, lmax 8, two repetitions (~3 s each after the
+    render): no band called determined is off by more than 10%, the determined coefficients'
+    intervals cover (criteria 1–2), and every withheld observable band of 0–4 is reported
+    prior-dominated. Criterion 3 is not asserted: under Ennis, Pisa and Wells the prior's
+    guess of the light behind the sphere happens to be within 10% up to band 1–3, which no
+    image shows (``test_one_view_light_hidden_behind_the_sphere``).
+    """
+    if not (PROBES / f"{probe}.hdr").is_file():
+        pytest.skip(f"{probe}.hdr not under {PROBES}")
+    data = rendered(PROBES / f"{probe}.hdr", "lambertian", views=6, px=32, cache=_cache(request))
+    c = run_cell(data, probe, "lambertian", 1, 8, reps=2)
+    assert c.error_ok and c.coverage_ok, markdown_table([c])
+    sel = data["view"] < 1
+    n, b, v = data["normal"][sel], data["radiance"][sel], data["view"][sel]
+    sd = 0.01 * b.abs().mean(0)
+    g = torch.Generator().manual_seed(1)
+    f = fit_lighting(n, b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64), 8,
+                     BRDFSpec("lambertian", kd=[1.0, 1.0, 1.0]),
+                     variance=(sd ** 2).expand_as(b).clone(), view=v)
+    low = [r for r in f.bands if r["l"] <= 4 and r["observable"] and not r["determined"]]
+    assert low and all(r["prior_dominated"] for r in low), f.bands
