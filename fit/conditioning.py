@@ -38,7 +38,8 @@ from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "BAYES_DEFINITION", "PRECISION_LIMIT", "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
-           "ERROR_BOUND_LEVEL", "band_error_bound",
+           "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
+           "weak_prior_variance",
            "band_statistics_bayes", "model_adequacy", "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
@@ -260,6 +261,12 @@ def band_error_bound(variances: torch.Tensor, norm: torch.Tensor,
 
 #: How much weaker (in variance) the prior of the robustness check is (:func:`weak_prior_variance`).
 PRIOR_WEAKENING = 10.0
+#: A band whose summed error variance grows more than this factor under the
+#: :data:`PRIOR_WEAKENING`-times weaker prior is *prior-dominated*: the prior, not the noise,
+#: sets its uncertainty (the samples do not see part of what sets it). Where the data determine
+#: a band the ratio is ~1 (six views of a Lambertian sphere: <= 1.01); one view of a Lambertian
+#: sphere under the reference probes gives 3-4 on bands 0-2 (docs/fitting.md, "One view").
+PRIOR_DOMINATED_RATIO = 2.0
 
 
 def weak_prior_variance(sol: LinearSolution, kappa: float = PRIOR_WEAKENING) -> torch.Tensor:
@@ -306,6 +313,9 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
         is exactly 0 are *unobservable*) — also gives the analytic column ``filter_rel``.
     eps : float, optional
         Noise level for the analytic per-band prediction ``|f_l|/|f_0| >= eps`` (R&H 2001 §5).
+    weak : torch.Tensor, optional
+        ``(K, C)`` posterior variances under a weaker prior (:func:`weak_prior_variance`):
+        rule 4 (the bound must hold under it too) and the ``prior_dominated`` diagnosis.
 
     Returns
     -------
@@ -316,7 +326,12 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
         ``n_coefficients``, ``observable``, ``filter_rel``, ``predicted_determined``,
         ``posterior_to_prior`` (worst channel), ``relative_precision`` (worst channel),
         ``reproducibility_chi2`` and ``reproducibility_limit`` (worst channel; ``None``
-        without a split), ``reproducible``, ``widened_by``, ``determined``,
+        without a split), ``reproducible``, ``widened_by``, ``error_bound`` (the rule-3 bound,
+        the larger of the fitted and the weaker prior's), ``error_bound_fitted_prior``,
+        ``prior_sensitivity`` (worst channel: summed error variance under the
+        :data:`PRIOR_WEAKENING`-times weaker prior over that under the fitted one; ``None``
+        without ``weak``), ``prior_dominated`` (``prior_sensitivity`` above
+        :data:`PRIOR_DOMINATED_RATIO`), ``determined``,
         ``ill_conditioned``, ``reason``, and the design statistics of :func:`band_statistics`
         (``singular_max``, ``singular_min``, ``condition``, ``determined_fraction``, ``median_snr``,
         ``resolution``, ``median_rel_stderr`` = relative precision).
@@ -360,9 +375,12 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             # Birge ratio: halves that disagree beyond their errors widen the band's errors
             infl[l] = torch.where(repro_ok, torch.ones_like(z2t), (z2t / nl).clamp_min(1.0))
         prec = prec * infl[l].sqrt()
-        bound = band_error_bound(post[sel] * infl[l], norm)
+        bound_fitted = band_error_bound(post[sel] * infl[l], norm)
+        bound, sens = bound_fitted, None
         if weak is not None:  # robust to a weaker prior (weak_prior_variance)
             bound = torch.maximum(bound, band_error_bound(weak[sel] * infl[l], norm))
+            sens = float((weak[sel].sum(0) / post[sel].sum(0).clamp_min(1e-300)).max())
+        prior_dominated = sens is not None and sens > PRIOR_DOMINATED_RATIO
         det = resolved & (bound <= ERROR_BOUND_LIMIT) & observable
         band_det[l] = det
         reasons = []
@@ -375,6 +393,13 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             reasons.append(f"imprecise: band norm error up to {100 * float(bound.max()):.3g}% "
                            f"at probability {ERROR_BOUND_LEVEL:g} (> "
                            f"{100 * ERROR_BOUND_LIMIT:g}%)")
+            if prior_dominated:
+                reasons.append(
+                    f"prior-dominated: its error variance grows {sens:.2g}x under a "
+                    f"{PRIOR_WEAKENING:g}x weaker prior (up to "
+                    f"{100 * float(bound_fitted.max()):.3g}% under the fitted one), so the "
+                    f"samples do not see part of what sets this band (one view: the lighting "
+                    f"behind the object); more views, not less noise, would determine it")
         if not bool(repro_ok.all()):
             reasons.append(f"halves differ by chi2 {z2:.3g} > {lim:.3g} ({nl} dof): errors "
                            f"widened {math.sqrt(float(infl[l].max())):.3g}x")
@@ -389,6 +414,8 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             "posterior_to_prior": float(ratio.max()),
             "relative_precision": float(prec.max()),
             "error_bound": float(bound.max()),
+            "error_bound_fitted_prior": float(bound_fitted.max()),
+            "prior_sensitivity": sens, "prior_dominated": prior_dominated,
             "reproducibility_chi2": z2, "reproducibility_limit": lim,
             "reproducible": bool(repro_ok.all()),
             "widened_by": math.sqrt(float(infl[l].max())),

@@ -22,6 +22,12 @@ def _ill_bands(results: dict) -> list[int]:
             if b.get("ill_conditioned")]
 
 
+def _prior_dominated_bands(results: dict) -> list[int]:
+    """Withheld lighting bands whose uncertainty the prior, not the images, sets (issue 12)."""
+    return [b["l"] for b in ((results.get("lighting") or {}).get("bands") or [])
+            if b.get("prior_dominated") and not b.get("determined", True)]
+
+
 def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) -> list[str]:
     """Lines to print after a run: headline rows, adequacy, warnings (first few), outputs."""
     h = headline(results)
@@ -36,6 +42,11 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
     ill = _ill_bands(results)
     if ill:
         lines.append(f"  ill-conditioned lighting bands: l = {', '.join(map(str, ill))}")
+    prior = _prior_dominated_bands(results)
+    if prior:
+        lines.append(f"    set by the prior, not the images: l = {', '.join(map(str, prior))} "
+                     "(part of the lighting is faced by no sample, e.g. behind the object in "
+                     "one view; more views, not less noise, would determine them)")
     lines.append(f"  model adequacy: {h['verdict'][1]}")
     ct = (results.get("aldrian_smith") or {}).get("colour_transform")
     if ct:  # which reference identified Aldrian & Smith's colour transform, or none

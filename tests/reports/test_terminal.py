@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from brdfcap.reports.terminal import terminal_lines
 from click.testing import CliRunner
 
 from brdfcap.cli import main
@@ -30,3 +31,21 @@ def test_run_prints_summary_json_and_quiet(tmp_path):
     r = CliRunner().invoke(main, ["run", str(cap), "--out", str(tmp_path / "c"), "--quiet",
                                   "--no-progress"])
     assert r.exit_code == 0 and r.output == ""
+
+
+def test_prior_dominated_bands_named_with_the_remedy(tmp_path):
+    """Withheld bands whose uncertainty the prior sets (one view: light behind the object) get
+    a line naming them and the remedy (more views); determined or noise-limited bands do not.
+    """
+    bands = [{"l": 0, "ill_conditioned": True, "determined": False, "prior_dominated": True},
+             {"l": 1, "ill_conditioned": True, "determined": False, "prior_dominated": True},
+             {"l": 2, "ill_conditioned": True, "determined": False, "prior_dominated": False},
+             {"l": 3, "ill_conditioned": False, "determined": True, "prior_dominated": True}]
+    out = "\n".join(terminal_lines({"capture": "x", "lighting": {"lmax": 3, "bands": bands}},
+                                   tmp_path))
+    assert "set by the prior, not the images: l = 0, 1 (" in out and "more views" in out, out
+    for b in bands:
+        b["prior_dominated"] = False
+    out = "\n".join(terminal_lines({"capture": "x", "lighting": {"lmax": 3, "bands": bands}},
+                                   tmp_path))
+    assert "set by the prior" not in out, out
