@@ -359,7 +359,8 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             idx = torch.nonzero(sel).flatten()
             z2s = []
             for c in range(nch):
-                cv = (bx.split_covariance[0, c] + bx.split_covariance[1, c])[idx][:, idx]
+                ix = (idx[:, None], idx[None, :])  # the band's block only (not K × K)
+                cv = bx.split_covariance[0, c][ix] + bx.split_covariance[1, c][ix]
                 cv = 0.5 * (cv + cv.T)
                 z2s.append(float(d[:, c] @ torch.linalg.lstsq(cv, d[:, c:c + 1]).solution[:, 0]))
             z2t = torch.tensor(z2s, dtype=torch.float64)
