@@ -427,6 +427,12 @@ class BayesExtras:
     whitened_eigenvalues: torch.Tensor | None = None
 
 
+#: From this many live columns up, :func:`_weighted_gram` forms the lower triangle in two
+#: column panels (3/4 of the products): 16% less CPU at 625 columns, 9% more at 328 (one
+#: thread, 32768 rows; below, one product runs nearer the BLAS's peak).
+PANEL_GRAM_COLUMNS = 512
+
+
 def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
                    live: torch.Tensor | None = None) -> torch.Tensor:
     """``aᵀ diag(w) a`` (K, K) for a float64 block ``a`` (n, K) and weights ``wcol`` (n, 1).
@@ -435,9 +441,10 @@ def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
     Lambertian design, where ``Â_l = 0``; R&H 2001 eq. 9) contribute exact zeros and are not
     multiplied: ``live`` (K,) bool names the others when the caller knows them (a design's
     ``live`` attribute, :func:`brdfcap.fit.inverse_lighting.lighting_design`), else they are
-    found by scanning the block. One matrix product over the live columns (measured faster
-    than products of lower-triangle column blocks: thin blocks run below the BLAS's peak);
-    its lower triangle is mirrored so the Gram is exactly symmetric.
+    found by scanning the block. One matrix product over the live columns, or two column
+    panels of the lower triangle from :data:`PANEL_GRAM_COLUMNS` columns up (thinner blocks
+    run below the BLAS's peak); the lower triangle is mirrored so the Gram is exactly
+    symmetric.
     """
     k = a.shape[1]
     if live is None:
@@ -450,7 +457,14 @@ def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
     if kz == 0:
         return torch.zeros(k, k, dtype=torch.float64, device=a.device)
     az = a if kz == k else a[:, nz]
-    gz = (az * wcol).T @ az
+    if kz >= PANEL_GRAM_COLUMNS:  # lower triangle in two column panels: 3/4 of the flops
+        h = kz // 2
+        aw = az * wcol
+        gz = az.new_empty(kz, kz)
+        gz[:, :h] = aw.T @ az[:, :h]
+        gz[h:, h:] = aw[:, h:].T @ az[:, h:]
+    else:
+        gz = (az * wcol).T @ az
     gz = torch.tril(gz) + torch.tril(gz, -1).T
     if kz == k:
         return gz
