@@ -86,6 +86,15 @@ def views_above(normal: torch.Tensor, gen: torch.Generator, spread: float = 0.8
     ``ωo = normalize(n + spread · u)`` with ``u`` uniform on the sphere, so ``n·ωo > 0`` and, for
     ``spread = 0.8``, ``ωo`` is at most 53° from ``n``; ``r = 2(n·ωo)n − ωo``. Both ``(N, 3)``,
     pointing away from the surface (``docs/conventions.md``).
+
+    Examples
+    --------
+    >>> g = torch.Generator().manual_seed(0)
+    >>> n = unit(100, g)
+    >>> wo, r = views_above(n, g)
+    >>> cos_o, cos_r = (n * wo).sum(-1), (n * r).sum(-1)
+    >>> bool((cos_o > 0.59).all()), bool(torch.allclose(cos_r, cos_o))
+    (True, True)
     """
     wo = torch.nn.functional.normalize(normal + spread * unit(normal.shape[0], gen), dim=-1)
     return wo, 2 * (normal * wo).sum(-1, keepdim=True) * normal - wo
