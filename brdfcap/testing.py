@@ -7,15 +7,19 @@ each other or ``conftest`` by name.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
 
+from brdfcap.capture.reference import LatLongProbe, render_environment
 from brdfcap.capture.simulate import simulate
+from brdfcap.fit.envmap import reconstruct_envmap
 from brdfcap.reconstruct.mesh import uv_sphere
 
-__all__ = ["unit", "random_lighting", "scene_text", "TINY_SCENE", "make_tiny_capture",
-           "reference_dir", "SHADOW_ALBEDO", "write_ply", "shadow_scene_toml"]
+__all__ = ["unit", "random_lighting", "views_above", "sh_probe", "render_reference",
+           "scene_text", "TINY_SCENE", "make_tiny_capture", "reference_dir", "SHADOW_ALBEDO",
+           "write_ply", "shadow_scene_toml"]
 
 #: A tiny (48x48 px, 2 views) noisy Lambertian sphere under Grace Cathedral (R&H 2001).
 TINY_SCENE = """
@@ -73,6 +77,54 @@ def random_lighting(lmax: int, gen: torch.Generator, dc: float = 2.0,
     x = torch.randn((lmax + 1) ** 2, 3, generator=gen, dtype=torch.float64) * amp
     x[0] += dc
     return x
+
+
+def views_above(normal: torch.Tensor, gen: torch.Generator, spread: float = 0.8
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return view directions ``ωo`` above each normal's horizon and their reflections ``r``.
+
+    ``ωo = normalize(n + spread · u)`` with ``u`` uniform on the sphere, so ``n·ωo > 0`` and, for
+    ``spread = 0.8``, ``ωo`` is at most 53° from ``n``; ``r = 2(n·ωo)n − ωo``. Both ``(N, 3)``,
+    pointing away from the surface (``docs/conventions.md``).
+
+    Examples
+    --------
+    >>> g = torch.Generator().manual_seed(0)
+    >>> n = unit(100, g)
+    >>> wo, r = views_above(n, g)
+    >>> cos_o, cos_r = (n * wo).sum(-1), (n * r).sum(-1)
+    >>> bool((cos_o > 0.59).all()), bool(torch.allclose(cos_r, cos_o))
+    (True, True)
+    """
+    wo = torch.nn.functional.normalize(normal + spread * unit(normal.shape[0], gen), dim=-1)
+    return wo, 2 * (normal * wo).sum(-1, keepdim=True) * normal - wo
+
+
+def sh_probe(light: torch.Tensor, height: int = 0) -> LatLongProbe:
+    """Band-limited SH lighting ``((lmax+1)², C)`` as a lat-long probe the reference renderer reads.
+
+    ``Σ L_lm y_lm`` evaluated at the texel centres of a ``height × 2·height`` grid (default
+    ``max(32, 8 (lmax+1))`` rows, what ``brdfcap simulate`` uses for SH lighting) and
+    interpolated by Keys' cubic, which reproduces smooth lighting to ``O(h³)``
+    (``docs/simulator.md``). The truth of a fit of data rendered under it is then ``light``
+    itself — exact zeros included — while the rendering path is not the SH forward model.
+    """
+    lmax = math.isqrt(light.shape[0]) - 1
+    h = height or max(32, 8 * (lmax + 1))
+    return LatLongProbe(reconstruct_envmap(light, h, 2 * h), "cubic")
+
+
+def render_reference(spec, light: torch.Tensor, normal: torch.Tensor, wo: torch.Tensor, *,
+                     rel_tol: float = 1e-3, height: int = 0) -> torch.Tensor:
+    """Radiance ``(N, C)`` of ``spec`` under SH lighting ``light`` by the reference renderer.
+
+    Numerical integration of the BRDF model's point evaluation (horizon clamp, Fresnel and
+    masking included) against :func:`sh_probe` of ``light``
+    (:func:`brdfcap.capture.reference.render_environment`, per-pixel error ≤ ``rel_tol``); not
+    :func:`brdfcap.fit.brdf_models.render_sh`, the forward model the lighting and BRDF fits
+    invert (issue 13).
+    """
+    return render_environment(spec, normal, wo, sh_probe(light, height), rel_tol=rel_tol)
 
 
 def scene_text(*, width: int = 96, views: int = 6, noise: str | None = None,

@@ -15,10 +15,10 @@ import math
 
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
-from brdfcap.fit.brdf_models import BRDFSpec, diffuse_filter, phong_sh_filter, render_sh
+from brdfcap.fit.brdf_models import BRDFSpec, diffuse_filter, phong_sh_filter
 from brdfcap.fit.sh import band_of_index
 
-from brdfcap.testing import random_lighting, unit
+from brdfcap.testing import random_lighting, render_reference, unit, views_above
 
 
 def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples):
@@ -67,6 +67,12 @@ def test_only_coefficients_an_ambiguity_moves_are_flagged():
     0 — unless their estimate, ~1 s.e. from 0, times the admissible range (kd >= 0,
     |f_l| <= 1) exceeds one s.e. (about half of them here); the clearly nonzero ones stay flagged.
     The old rule flagged whole bands in every channel.
+
+    The lighting with its exact zeros is evaluated on a lat-long probe and rendered by the
+    reference renderer (Phong point evaluation with its horizon clamp, ``rel_tol = 1e-3``,
+    views within 53° of the normal; issue 13), so the truth is known exactly while the data
+    do not come from the model the fit inverts; the render's error (≤ 1e-3 of a pixel) stays
+    below the 0.5% noise.
     """
     spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
     lmax = 4
@@ -75,8 +81,9 @@ def test_only_coefficients_an_ambiguity_moves_are_flagged():
     zero = torch.zeros_like(light, dtype=torch.bool)
     zero[1:] = torch.rand(light[1:].shape, generator=g, dtype=torch.float64) < 0.5
     light[zero] = 0.0
-    n, r = unit(4000, g), unit(4000, g)
-    b = render_sh(spec, n, r, light)
+    n = unit(2500, g)
+    wo, r = views_above(n, g)
+    b = render_reference(spec, light, n, wo, rel_tol=1e-3)
     sd = 0.005 * float(b.abs().mean())
     bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
     fit = fit_bilinear(n, r, bn, lmax, brdf_lmax=lmax, variance=torch.full_like(b, sd ** 2))

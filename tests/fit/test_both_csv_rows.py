@@ -2,7 +2,8 @@
 
 The factors (lighting, kd, f_l) of a bilinear fit are determined only up to a gauge, so their
 rows carry ``inf``; the products the images determine carry finite errors and must be in the
-CSV too, each row matching ``results.json`` ``gauge_invariant``.
+CSV too, each row matching ``results.json`` ``gauge_invariant``. The samples come from the
+independent reference renderer (:func:`brdfcap.testing.render_reference`, issue 13).
 """
 
 from __future__ import annotations
@@ -11,20 +12,21 @@ import math
 
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
-from brdfcap.fit.brdf_models import BRDFSpec, render_sh
+from brdfcap.fit.brdf_models import BRDFSpec
 from brdfcap.fit.problems.both import gauge_estimates
 from brdfcap.fit.result import FitResult
 
 from brdfcap.results_io import coefficients_csv
-from brdfcap.testing import random_lighting, unit
+from brdfcap.testing import random_lighting, render_reference, unit, views_above
 
 
 def test_gauge_invariant_products_are_csv_rows_with_their_errors():
     spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
     g = torch.Generator().manual_seed(3)
     light = random_lighting(2, g, dc=1.0, amp=0.3)
-    n, r = unit(1500, g), unit(1500, g)
-    b = render_sh(spec, n, r, light)
+    n = unit(1500, g)
+    wo, r = views_above(n, g)
+    b = render_reference(spec, light, n, wo, rel_tol=1e-3)
     sd = 0.005 * float(b.abs().mean())
     bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
     fit = fit_bilinear(n, r, bn, 2, brdf_lmax=2, variance=torch.full_like(b, sd ** 2))

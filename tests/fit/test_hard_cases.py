@@ -3,6 +3,12 @@
 Each case checks: finite estimates and finite-or-inf (never NaN) standard errors, no exception,
 the unobservable part flagged (``determined`` False / ``ill_conditioned_from_l`` set), and —
 where something *is* determined — that it is still right.
+
+Lambertian data come from :func:`brdfcap.fit.brdf_models.render_sh`, the exact render under
+band-limited lighting (R&H 2001 eq. 13; ``docs/simulator.md``); glossy data from the
+independent reference renderer (:func:`brdfcap.testing.render_reference`, issue 13) and
+directional-light data from the point evaluation (``render_directional``, which is the
+reference renderer's ``render_lights``).
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.parametric import fit_brdf_parametric
 from brdfcap.fit.sh import band_of_index
 
-from brdfcap.testing import random_lighting, unit
+from brdfcap.testing import random_lighting, render_reference, unit, views_above
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 LAMB = BRDFSpec("lambertian", kd=[1.0, 1.0, 1.0])
@@ -58,20 +64,41 @@ def test_lambertian_lmax20_odd_bands_unobservable():
     assert fit.coefficients[band >= 10].abs().max() < 0.5 * GRACE[0].abs().min()
 
 
-@pytest.mark.parametrize("spec,lmax,ill_expected", [
-    (BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=1e4), 8, None),   # near mirror
-    (BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=1.0), 6, 3),      # = clamped cosine
-    (BRDFSpec("microfacet", kd=[0, 0, 0], f0=[1, 1, 1], sigma=0.01), 8, None),
-    (BRDFSpec("microfacet", kd=[0, 0, 0], f0=[1, 1, 1], sigma=1.0), 8, "early"),
+@pytest.mark.parametrize("spec,lmax,ill_expected,samples", [
+    (BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=1e4), 8, None, 2000),   # near mirror
+    (BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=1.0), 6, 3, 2000),      # clamped cosine
+    (BRDFSpec("microfacet", kd=[0, 0, 0], f0=[1, 1, 1], sigma=0.01), 8, None, 2000),
+    (BRDFSpec("microfacet", kd=[0, 0, 0], f0=[1, 1, 1], sigma=1.0), 8, "early", 600),
 ])
-def test_extreme_lobes(spec, lmax, ill_expected):
-    """Near-mirror and very broad lobes: finite, and l* where the filter says it must be."""
+def test_extreme_lobes(spec, lmax, ill_expected, samples):
+    """Near-mirror and very broad lobes: finite, and l* where the filter says it must be.
+
+    Random normals, random lighting, rendered by the reference renderer (numerical
+    integration of the true lobe: horizon clamp, Cook–Torrance's Fresnel, masking and
+    ``1/(4 cosθi cosθo)`` included; ``rel_tol = 3e-3``, a third of the 1% noise, 1e-2 for the
+    σ = 1 lobe whose model error is far larger). Views within 53° of the normal; Phong s = 1
+    is seen along the normal (``ωo = n``), where its lobe ``max(r·ωi, 0)`` *is* the clamped
+    cosine (odd bands > 1 exactly 0) and the horizon clamp removes nothing.
+
+    Where every band is determined the coefficients must be within 5% of the DC of the truth.
+    Whatever the case, a band the fit calls determined is within 10% (band norm) of the truth
+    unless the fit says its model does not explain the data: at σ = 1 R&H's filter
+    ``exp(−(σl)²)`` is far from the Beckmann lobe (L00 off by 40%, chi2/nu ≈ 300, measured
+    with R&H's filter) and ``adequacy`` must say so.
+    """
     g = torch.Generator().manual_seed(1)
-    n, r = unit(3000, g), unit(3000, g)
+    n = unit(samples, g)
+    wo, r = (n, n) if spec.model == "phong" and spec.s == 1.0 else views_above(n, g)
     light = random_lighting(lmax, g)
-    bn, sd = _noisy(render_sh(spec, n, r, light), g)
+    rel_tol = 1e-2 if spec.sigma >= 1.0 else 3e-3
+    bn, sd = _noisy(render_reference(spec, light, n, wo, rel_tol=rel_tol), g)
     fit = fit_lighting(n, bn, lmax, spec, reflected=r, variance=torch.full_like(bn, sd ** 2))
     _sane(fit)
+    band = band_of_index(lmax)
+    rel = [float(((fit.coefficients - light)[band == l].norm(dim=0)
+                  / light[band == l].norm(dim=0)).max()) for l in range(lmax + 1)]
+    wrong = [l for l in range(lmax + 1) if bool(fit.determined[band == l].any()) and rel[l] > 0.1]
+    assert not wrong or not fit.adequacy["adequate"], (wrong, rel, fit.adequacy["verdict"])
     if ill_expected is None:
         assert fit.ill_conditioned_from_l is None
         assert ((fit.coefficients - light).abs() / light[0].abs()).max() < 0.05
@@ -133,19 +160,25 @@ def test_float32_inputs():
     torch.testing.assert_close(f32.coefficients[:9], f64.coefficients[:9], rtol=0, atol=1e-4)
 
 
-def test_saturated_highlights_removed():
-    """Highlights clipped by the sensor and removed (NaN) before the fit: ignored, fit unbiased."""
-    g = torch.Generator().manual_seed(5)
-    spec = BRDFSpec("phong", kd=[0.5, 0.5, 0.5], ks=[1.0, 1.0, 1.0], s=32.0)
-    n, r = unit(4000, g), unit(4000, g)
-    light = random_lighting(4, g)
-    b = render_sh(spec, n, r, light)
+def test_saturated_highlights_removed(phong_reference_samples):
+    """Highlights clipped by the sensor and removed (NaN) before the fit: ignored, fit unbiased.
+
+    Phong s = 20 + diffuse under lighting to l = 6, rendered by the reference renderer
+    (session fixture ``phong_reference_samples``, ``rel_tol = 1e-3``); the samples whose
+    brightest channel is in the top 10% are removed, and the lighting still comes back to
+    3 × the render tolerance of the DC, band by band (the argument of
+    ``test_inverse_lighting.py::test_round_trip_on_the_reference_renderer``, which fits all of
+    them).
+    """
+    s = phong_reference_samples
+    light, b, n = s["light"], s["radiance"], s["normal"]
     sat = b > torch.quantile(b, 0.9)
     b_removed = torch.where(sat.any(-1, keepdim=True), torch.full_like(b, math.nan), b)
-    fit = fit_lighting(n, b_removed, 4, spec, reflected=r)
+    fit = fit_lighting(n, b_removed, 6, s["spec"], reflected=s["reflected"])
     _sane(fit)
-    assert fit.n_samples < 4000
-    assert ((fit.coefficients - light).abs() / light[0].abs()).max() < 1e-6
+    assert fit.n_samples < 0.9 * n.shape[0]
+    assert fit.ill_conditioned_from_l is None, fit.bands
+    assert ((fit.coefficients - light).abs() / light[0].abs()).max() < 3 * s["rel_tol"]
 
 
 def test_zero_weight_samples():

@@ -1,11 +1,12 @@
 """Problem 1 (inverse lighting, BRDF known): round trips and measured vs predicted l*.
 
-Samples are synthetic (random normals / reflected directions, radiance from
-:func:`brdfcap.fit.brdf_models.render_sh`), so the tests isolate the solver from rendering.
-Exact for the Lambertian and mirror cases under band-limited lighting; the Phong and microfacet
-cases are listed in ``docs/simulator.md`` as still on the SH forward model (their accuracy on
-independent data: ``test_inverse_brdf.py::test_sh_filter_round_trip_phong``,
-``test_uncertainty_truth.py``).
+Samples are synthetic (random normals and views, no camera). Lambertian and mirror data come
+from :func:`brdfcap.fit.brdf_models.render_sh`, which is the exact render for them under
+band-limited lighting (R&H 2001 eq. 13; a documented exception in ``docs/simulator.md``). The
+glossy cases (Phong, Beckmann microfacet) are rendered by the independent reference renderer
+(:func:`brdfcap.testing.render_reference`: numerical integration of the model's point
+evaluation under the SH lighting as a lat-long probe; issue 13), never by the forward model
+the fit inverts.
 """
 
 from __future__ import annotations
@@ -20,18 +21,53 @@ from brdfcap.fit.filters import lambertian_filter
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index
 
-from brdfcap.testing import random_lighting, unit
+from brdfcap.testing import random_lighting, render_reference, unit, views_above
 
 GRACE = torch.tensor(GRACE_RH2001, dtype=torch.float64)
 
 CASES = {
     "lambertian": (BRDFSpec("lambertian", kd=[0.8, 0.6, 0.5]), 2),
     "phong": (BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[0.5, 0.5, 0.5], s=32.0), 6),
-    "phong+diffuse": (BRDFSpec("phong", kd=[0.6, 0.5, 0.4], ks=[0.3, 0.3, 0.3], s=16.0), 6),
+    "phong+diffuse": None,  # the session fixture ``phong_reference_samples`` (s = 20, kd > 0)
     "microfacet": (BRDFSpec("microfacet", kd=[0.0, 0.0, 0.0], f0=[0.9, 0.8, 0.6],
                             sigma=0.15), 6),
     "mirror": (BRDFSpec("mirror", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0]), 6),
 }
+#: Cases whose data ``render_sh`` renders exactly (band-limited lighting, docs/simulator.md).
+EXACT = ("lambertian", "mirror")
+#: Reference-renderer tolerance of the glossy renders (per pixel, relative).
+REL_TOL = 1e-3
+#: Issue 12's criterion 1: a band the fit calls determined is within 10% (band norm).
+ERROR_LIMIT = 0.10
+
+
+@pytest.fixture(scope="module")
+def glossy_samples(request):
+    """``name -> (spec, light, normal, reflected, radiance)`` of the glossy cases, rendered once.
+
+    1500 random normals, views within 53° of them (:func:`brdfcap.testing.views_above`),
+    random lighting to l = 6 rendered by the reference renderer to ``REL_TOL``; ``phong+diffuse``
+    is the session fixture ``phong_reference_samples``. ~6 s per render on one core.
+    """
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            if CASES[name] is None:
+                s = request.getfixturevalue("phong_reference_samples")
+                cache[name] = (s["spec"], s["light"], s["normal"], s["reflected"],
+                               s["radiance"])
+            else:
+                spec, lmax = CASES[name]
+                g = torch.Generator().manual_seed(3)
+                light = random_lighting(lmax, g)
+                n = unit(1500, g)
+                wo, r = views_above(n, g)
+                cache[name] = (spec, light, n, r,
+                               render_reference(spec, light, n, wo, rel_tol=REL_TOL))
+        return cache[name]
+
+    return get
 
 
 def test_phong_filter_recurrence_matches_lambertian_and_gaussian():
@@ -46,23 +82,54 @@ def test_phong_filter_recurrence_matches_lambertian_and_gaussian():
 
 @pytest.mark.parametrize("name", list(CASES))
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_noise_free_round_trip(name, dtype):
-    """Noise-free round trip of each BRDF.
+def test_noise_free_round_trip(name, dtype, glossy_samples):
+    """Noise-free round trip of each BRDF, against the lighting's exact SH coefficients.
 
-    Well-conditioned coefficients come back to 1e-6 relative (float64 inputs; float32
-    inputs are limited by their own rounding, ~1e-7 relative per sample: 1e-4 guarded).
+    * Lambertian, mirror (``render_sh``, exact): every coefficient to 1e-6 of the DC (float64
+      inputs; float32 inputs are limited by their own rounding, ~1e-7 relative per sample:
+      1e-4 guarded).
+    * Phong (reference renderer, horizon clamp included): every band to 3 × the render
+      tolerance of the DC (each pixel is within ``REL_TOL`` of the true integral; a
+      well-conditioned least-squares fit carries that through at about the same size).
+      Measured 1.2e-5 to 1.1e-4 (s = 32) and 1e-4 to 8.3e-4 (s = 20 + diffuse) of the DC.
+    * Beckmann microfacet: R&H's filter ``F0 exp(−(σl)²)`` omits Cook–Torrance's Fresnel
+      variation, masking and ``1/(4 cosθi cosθo)``, so the fit is not exact; what it claims —
+      every band it calls determined within 10% of the truth (issue 12's criterion 1) — must
+      hold. Measured 0.14% (l = 0) to 7.6% (l = 6, band norm) with R&H's filter.
+
+    float32 inputs are computed in float64: same flags, and the same coefficients as float64
+    inputs to 1e-4 of the DC.
     """
-    spec, lmax = CASES[name]
-    g = torch.Generator().manual_seed(3)
-    light = GRACE if lmax == 2 else random_lighting(lmax, g)
-    n, r = unit(3000, g), unit(3000, g)
-    b = render_sh(spec, n, r, light)
+    if name in EXACT:
+        spec, lmax = CASES[name]
+        g = torch.Generator().manual_seed(3)
+        light = GRACE if lmax == 2 else random_lighting(lmax, g)
+        n, r = unit(3000, g), unit(3000, g)
+        b = render_sh(spec, n, r, light)
+    else:
+        spec, light, n, r, b = glossy_samples(name)
+        lmax = math.isqrt(light.shape[0]) - 1
     fit = fit_lighting(n.to(dtype), b.to(dtype), lmax, spec, reflected=r.to(dtype))
     assert fit.coefficients.dtype == torch.float64
     assert fit.ill_conditioned_from_l is None, fit.bands
-    err = ((fit.coefficients - light).abs() / light[0].abs()).max()
-    assert err < (1e-6 if dtype == torch.float64 else 1e-4), float(err)
     assert torch.isfinite(fit.stderr).all()
+    band = band_of_index(lmax)
+    err = [float(((fit.coefficients - light)[band == l].abs() / light[0].abs()).max())
+           for l in range(lmax + 1)]
+    if name in EXACT:
+        assert max(err) < (1e-6 if dtype == torch.float64 else 1e-4), err
+    elif spec.model == "phong":
+        assert max(err) < 3 * REL_TOL, err
+    else:
+        rel = [float(((fit.coefficients - light)[band == l].norm(dim=0)
+                      / light[band == l].norm(dim=0)).max()) for l in range(lmax + 1)]
+        assert all(e < ERROR_LIMIT for l, e in enumerate(rel)
+                   if bool(fit.determined[band == l].all())), rel
+        assert bool(fit.determined[band <= 2].all())
+    if dtype == torch.float32:
+        f64 = fit_lighting(n, b, lmax, spec, reflected=r)
+        assert torch.equal(fit.determined, f64.determined)
+        assert float(((fit.coefficients - f64.coefficients).abs() / light[0].abs()).max()) < 1e-4
 
 
 def test_many_views_concatenate():
