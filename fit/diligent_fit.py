@@ -263,20 +263,32 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
     y_pc = per_pixel(wf * bt)
     d_safe = np.where(d_pc > 0, d_pc, 1.0)
     wbb = colsum(bt, bt) if w is None else colsum(w, bt, bt)
-    pid_s = pid[sup]
-    e_s = et[:, sup]
-    wfe_s = wf[:, sup] * e_s
-    wee_s = e_s * e_s if w is None else w[:, sup] * e_s * e_s
-    web_s = e_s * bt[:, sup] if w is None else w[:, sup] * e_s * bt[:, sup]
-    del e_s
+    # support samples grouped by pixel (stable order): per-pixel sums are then one reduceat over
+    # contiguous runs instead of a scattered bincount per channel
+    order = np.argsort(pid[sup], kind="stable")
+    pid_s, lx_g = pid[sup][order], lx_s[order]
+    starts = np.flatnonzero(np.r_[True, pid_s[1:] != pid_s[:-1]]) if len(pid_s) else \
+        np.zeros(0, np.int64)
+    seg_pix = pid_s[starts]
+    idx = np.flatnonzero(sup)[order]
+    e_s, b_s = et[:, idx], bt[:, idx]
+    wfe_s = wf[:, idx] * e_s
+    wee_s = e_s * e_s if w is None else w[:, idx] * e_s * e_s
+    web_s = e_s * b_s if w is None else w[:, idx] * e_s * b_s
+    del e_s, b_s, idx
+    p = np.empty(len(lx_g))  # work buffers of solve_at
+    wp = np.empty_like(wfe_s)
 
     def solve_at(s):
         """Per-pixel kd ``(npix, C)`` and ks ``(C,)`` at exponent s, and the sums behind them."""
         k = (s + 1.0) / (2.0 * math.pi)
-        p = np.exp(s * lx_s)
-        bp = k * np.stack([np.bincount(pid_s, wfe_s[c] * p, npix) for c in range(nch)], -1)
-        gg = k * k * (wee_s @ (p * p))
-        gb = k * (web_s @ p)
+        np.exp(np.multiply(lx_g, s, out=p), out=p)
+        bp = np.zeros((npix, nch))
+        if len(starts):
+            bp[seg_pix] = k * np.add.reduceat(np.multiply(wfe_s, p, out=wp), starts, axis=1).T
+        # einsum, not BLAS: OpenBLAS's threads spin-wait after every call, ~2x the CPU time here
+        gb = k * np.einsum("cn,n->c", web_s, p)
+        gg = k * k * np.einsum("cn,n->c", wee_s, np.multiply(p, p, out=p))
         schur = gg - (bp * bp / d_safe).sum(0)
         rhs = gb - (bp * y_pc / d_safe).sum(0)
         ok = schur > 1e-300
