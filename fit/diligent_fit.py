@@ -441,6 +441,7 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
     # (N, L+3): sqrt((2l+1)/4π) P_l; the columns l <= lmax do not depend on the highest degree
     a2 = legendre_normalized(torch.from_numpy(x), lmax + 2, m=0)
     a = a2[:, :lmax + 1].contiguous()
+    a2sq = a2 * a2  # for diag(AᵀWA) below, once for every channel
     band = torch.arange(lmax + 1)
     nch = y.shape[1]
     rho = np.zeros((lmax + 1, nch))
@@ -454,7 +455,9 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         yc = torch.from_numpy(np.ascontiguousarray(y[:, c:c + 1]))
         # column equilibration: a per-band penalty equal to diag(AᵀWA) makes solve_wls work on
         # the unit-diagonal normal matrix (its eigenvalue cut then ignores the column scales)
-        d2 = (a * a * wc).sum(0)
+        # (the lmax-band fit's diagonal is the first lmax+1 entries: the same column sums)
+        d2x = (a2sq * wc).sum(0)
+        d2 = d2x[:lmax + 1]
         sol = solve_wls(a, yc, wc, band, rule="none", noise_known=True,
                         band_penalty=torch.where(d2 > 0, d2, torch.ones_like(d2)),
                         keep_covariance=True, noise_source="sandwich (White 1980)")
@@ -466,7 +469,6 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         ginv = sol.covariance[0] / sol.chi2_reduced[0].clamp_min(1.0)
         ginvs.append(ginv)
         # the same fit two bands higher: how far the truncation moves each band (aliasing test)
-        d2x = (a2 * a2 * wc).sum(0)
         sol2 = solve_wls(a2, yc, wc, band2, rule="none", noise_known=True,
                          band_penalty=torch.where(d2x > 0, d2x, torch.ones_like(d2x)))
         shift[:, c] = (sol2.coefficients[: lmax + 1, 0] - xsol).abs().numpy()
