@@ -156,21 +156,29 @@ class PhongFit:
         return np.median(self.kd_pixel, axis=0)
 
 
-def _bases(n, o, i, e, s):
-    cos_i = np.einsum("ij,ij->i", n, i)
-    r = 2.0 * np.einsum("ij,ij->i", n, o)[:, None] * n - o
-    x = np.einsum("ij,ij->i", r, i)
-    lit = cos_i > 0
-    f = e * (np.where(lit, cos_i, 0.0) / math.pi)[:, None]  # diffuse basis (N, C)
-    xp = np.where(lit & (x > 0), np.clip(x, 0.0, 1.0), 0.0)
-    with np.errstate(divide="ignore"):
-        logx = np.where(xp > 0, np.log(np.where(xp > 0, xp, 1.0)), -np.inf)
-    return f, xp, logx
+def _channels(x) -> np.ndarray:
+    """``(N, C)`` array or tensor -> ``(C, N)`` float64 copy, C-contiguous.
+
+    Channel-major: numpy's elementwise loops then run over samples, not over 3 channels (an
+    ``(N, 3)`` operand broadcast against ``(3,)`` or ``(N, 1)`` runs a 3-element inner loop per
+    sample, ~10x slower than the same arithmetic on ``(3, N)``).
+    """
+    a = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    return np.array(a.T, dtype=np.float64, order="C")
 
 
-def _spec_basis(e, logx, s):
-    p = np.where(np.isfinite(logx), np.exp(s * np.where(np.isfinite(logx), logx, 0.0)), 0.0)
-    return e * ((s + 1.0) / (2.0 * math.pi) * p)[:, None]
+def _rows(x, idx=None, dtype=np.float64) -> np.ndarray:
+    """``(N, k)`` array or tensor as ``dtype`` (no copy when it already is), rows ``idx``."""
+    a = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    a = a if idx is None else a[idx]
+    return a.astype(dtype, copy=False)
+
+
+def _lobe_cosine(n, o, i, cos_i=None) -> np.ndarray:
+    """``x = r·ωi`` with ``r = 2 (n·ωo) n − ωo``, as ``2 (n·ωo)(n·ωi) − ωo·ωi`` (``(N,)``)."""
+    if cos_i is None:
+        cos_i = np.einsum("ij,ij->i", n, i)
+    return 2.0 * np.einsum("ij,ij->i", n, o) * cos_i - np.einsum("ij,ij->i", o, i)
 
 
 def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None,
@@ -199,64 +207,107 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
     FitError
         Fewer lit samples than unknowns.
     """
-    n, o, i = _np(normal), _np(wo), _np(wi)
-    e, b = _np(irradiance), _np(radiance)
-    pix = _np(pixel).astype(np.int64)
+    n, o, i = _rows(normal), _rows(wo), _rows(wi)
+    et, bt = _channels(irradiance), _channels(radiance)  # (C, N): see _channels
+    pix = _rows(pixel, dtype=np.int64)
     cos_i = np.einsum("ij,ij->i", n, i)
-    used = (cos_i > 0) & np.isfinite(b).all(-1)
+    used = (cos_i > 0) & np.isfinite(bt).all(0)
     if variance is None:
-        w_all = np.ones_like(b)
+        w = None  # uniform weights are exactly 1: products with them are skipped (bit-identical)
         src = ("uniform weights; standard errors from the residuals by the heteroscedastic-"
                "consistent sandwich estimator (no noise model)")
     else:
-        v = _np(variance)
-        scale = np.median(np.abs(b), axis=0).clip(1e-300)
-        w_all = 1.0 / (v + (1e-6 * scale) ** 2)
+        scale = np.median(np.abs(bt), axis=1).clip(1e-300)
+        w = 1.0 / (_channels(variance) + ((1e-6 * scale) ** 2)[:, None])
         src = "capture noise model (inflated by residual χ² > 1)"
-    key = pix[:, 0] * (int(pix[:, 1].max(initial=0)) + 1) + pix[:, 1]
-    uniq, pid_all = np.unique(key[used], return_inverse=True)
+    ncol = int(pix[:, 1].max(initial=0)) + 1
+    key = pix[:, 0] * ncol + pix[:, 1]
+    uniq, pid = np.unique(key[used], return_inverse=True)
     npix = len(uniq)
     nu = int(used.sum())
     if nu < npix + 4 or npix == 0:
         raise FitError(f"{nu} lit samples cannot determine {npix} per-pixel albedos plus the "
                        "specular lobe; add lights or unmask pixels")
-    n, o, i, e, b, w = n[used], o[used], i[used], e[used], b[used], w_all[used]
-    f, xp, logx = _bases(n, o, i, e, 0.0)
+    if not used.all():
+        n, o, i, cos_i = n[used], o[used], i[used], cos_i[used]
+        et, bt = et[:, used], bt[:, used]
+        w = None if w is None else w[:, used]
+    nch = bt.shape[0]
 
-    # s-independent per-pixel sums, and the specular support (r·ωi > 0) where g(s) != 0: the
-    # 1-D search then costs O(support) per evaluation instead of O(N)
-    nch = b.shape[1]
-    d_pc = np.stack([np.bincount(pid_all, w[:, c] * f[:, c] ** 2, npix) for c in range(nch)], -1)
-    y_pc = np.stack([np.bincount(pid_all, w[:, c] * f[:, c] * b[:, c], npix)
-                     for c in range(nch)], -1)
+    def wt(x):  # w * x
+        return x if w is None else w * x
+
+    def per_pixel(vals):  # (C, N') sums per pixel -> (npix, C)
+        return np.stack([np.bincount(pid, vals[c], npix) for c in range(nch)], -1)
+
+    def at_pixel(vals):  # (npix, C) per pixel -> (C, N') per sample
+        return np.take(np.ascontiguousarray(vals.T), pid, axis=1)
+
+    def colsum(*factors):  # (C,) sum over samples of a product, without temporaries
+        return np.einsum(",".join(["cn"] * len(factors)) + "->c", *factors)
+
+    # bases: diffuse f = E (n·ωi)/π (every used sample is lit); lobe p(s) = x^s on the specular
+    # support x = r·ωi > 0, where g(s) = E (s+1)/(2π) p(s) != 0
+    f = et * (cos_i / math.pi)
+    x = _lobe_cosine(n, o, i, cos_i)
+    sup = x > 0
+    lx_s = np.log(np.minimum(x[sup], 1.0))
+    logx0 = np.zeros(nu)
+    logx0[sup] = lx_s
+
+    # s-independent per-pixel sums and, on the support, the s-independent (C, N_support)
+    # products that every s-dependent sum of rss_of multiplies by k = (s+1)/(2π) or k² and p
+    # or p²: the 1-D search then costs O(support) per evaluation instead of O(N C)
+    wf = wt(f)
+    d_pc = per_pixel(wf * f)
+    y_pc = per_pixel(wf * bt)
     d_safe = np.where(d_pc > 0, d_pc, 1.0)
-    wbb = (w * b * b).sum(0)
-    sup = np.isfinite(logx)
-    pid_s, f_s, b_s, w_s, e_s, lx_s = pid_all[sup], f[sup], b[sup], w[sup], e[sup], logx[sup]
+    wbb = colsum(bt, bt) if w is None else colsum(w, bt, bt)
+    # support samples grouped by pixel (stable order): per-pixel sums are then one reduceat over
+    # contiguous runs instead of a scattered bincount per channel
+    order = np.argsort(pid[sup], kind="stable")
+    pid_s, lx_g = pid[sup][order], lx_s[order]
+    starts = np.flatnonzero(np.r_[True, pid_s[1:] != pid_s[:-1]]) if len(pid_s) else \
+        np.zeros(0, np.int64)
+    seg_pix = pid_s[starts]
+    idx = np.flatnonzero(sup)[order]
+    e_s, b_s = et[:, idx], bt[:, idx]
+    wfe_s = wf[:, idx] * e_s
+    wee_s = e_s * e_s if w is None else w[:, idx] * e_s * e_s
+    web_s = e_s * b_s if w is None else w[:, idx] * e_s * b_s
+    del e_s, b_s, idx
+    p = np.empty(len(lx_g))  # work buffers of solve_at
+    wp = np.empty_like(wfe_s)
+
+    def solve_at(s):
+        """Per-pixel kd ``(npix, C)`` and ks ``(C,)`` at exponent s, and the sums behind them."""
+        k = (s + 1.0) / (2.0 * math.pi)
+        np.exp(np.multiply(lx_g, s, out=p), out=p)
+        bp = np.zeros((npix, nch))
+        if len(starts):
+            bp[seg_pix] = k * np.add.reduceat(np.multiply(wfe_s, p, out=wp), starts, axis=1).T
+        # einsum, not BLAS: OpenBLAS's threads spin-wait after every call, ~2x the CPU time here
+        gb = k * np.einsum("cn,n->c", web_s, p)
+        gg = k * k * np.einsum("cn,n->c", wee_s, np.multiply(p, p, out=p))
+        schur = gg - (bp * bp / d_safe).sum(0)
+        rhs = gb - (bp * y_pc / d_safe).sum(0)
+        ok = schur > 1e-300
+        ks = np.where(ok, rhs / np.where(ok, schur, 1.0), 0.0)
+        kd = np.where(d_pc > 0, (y_pc - bp * ks) / d_safe, 0.0)
+        return kd, ks, bp, gg, gb
 
     def rss_of(s):
         """Weighted RSS at exponent s with kd, ks solved (expanded quadratic form)."""
-        g = e_s * ((s + 1.0) / (2.0 * math.pi) * np.exp(s * lx_s))[:, None]
-        kd = np.zeros((npix, nch))
-        ks = np.zeros(nch)
-        rss = 0.0
-        for c in range(nch):
-            wg = w_s[:, c] * g[:, c]
-            bp = np.bincount(pid_s, wg * f_s[:, c], npix)
-            gg, gb = float((wg * g[:, c]).sum()), float((wg * b_s[:, c]).sum())
-            schur = gg - float((bp * bp / d_safe[:, c]).sum())
-            rhs = gb - float((bp * y_pc[:, c] / d_safe[:, c]).sum())
-            ks[c] = rhs / schur if schur > 1e-300 else 0.0
-            kd[:, c] = np.where(d_pc[:, c] > 0, (y_pc[:, c] - bp * ks[c]) / d_safe[:, c], 0.0)
-            rss += (wbb[c] - 2 * (kd[:, c] * y_pc[:, c]).sum() + (kd[:, c] ** 2 * d_pc[:, c]).sum()
-                    - 2 * ks[c] * gb + 2 * ks[c] * (kd[:, c] * bp).sum() + ks[c] ** 2 * gg)
-        return float(rss), kd, ks
+        kd, ks, bp, gg, gb = solve_at(s)
+        rss = (wbb - 2 * (kd * y_pc).sum(0) + (kd ** 2 * d_pc).sum(0) - 2 * ks * gb
+               + 2 * ks * (kd * bp).sum(0) + ks ** 2 * gg)
+        return float(rss.sum())
 
     lo, hi = math.log(S_RANGE[0]), math.log(S_RANGE[1])
     profile = []
     if s_init is None:
         grid = np.linspace(lo, hi, 19)  # steps of 0.47 in log s: the lobe width changes 27 %
-        vals = [rss_of(math.exp(t))[0] for t in grid]
+        vals = [rss_of(math.exp(t)) for t in grid]
         profile = [(math.exp(t), v) for t, v in zip(grid, vals)]
         k = int(np.argmin(vals))
         a, c = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
@@ -265,37 +316,36 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
         a, c = max(lo, t0 - 0.5), min(hi, t0 + 0.5)
     from scipy.optimize import minimize_scalar
 
-    opt = minimize_scalar(lambda t: rss_of(math.exp(t))[0], bounds=(a, c), method="bounded",
+    opt = minimize_scalar(lambda t: rss_of(math.exp(t)), bounds=(a, c), method="bounded",
                           options={"xatol": 1e-6})
     s = float(math.exp(opt.x))
-    _, kd, ks = rss_of(s)
-    g = _spec_basis(e, logx, s)
-    rss = float((w * (b - kd[pid_all] * f - ks * g) ** 2).sum())  # direct, no cancellation
+    kd, ks = solve_at(s)[:2]
+    lobe = np.zeros(nu)
+    lobe[sup] = (s + 1.0) / (2.0 * math.pi) * np.exp(s * lx_s)  # (s+1)/(2π) x^s
+    g = et * lobe
+    pred_used = at_pixel(kd) * f
+    pred_used += ks[:, None] * g
+    res = bt - pred_used
+    wres = wt(res)
+    rss = float(colsum(wres, res).sum())  # direct, no cancellation
     dof = max(nu * nch - npix * nch - nch - 1, 1)
     chi2 = rss / dof
     sigma2 = max(chi2, 1.0) if variance is not None else chi2
 
     # projected Jacobian for theta = (ks_0..ks_{C-1}, s); kd eliminated per pixel
-    lobe = _spec_basis(np.ones((len(b), 1)), logx, s)  # (s+1)/(2π) x^s, (N, 1)
-    logx0 = np.where(np.isfinite(logx), logx, 0.0)
-    dgds = e * (lobe * (1.0 / (s + 1.0) + logx0[:, None]))  # d g / d s
-    pred_used = kd[pid_all] * f + ks * g
-    res = b - pred_used
+    js = et * (lobe * (1.0 / (s + 1.0) + logx0))  # d g / d s
+    js *= ks[:, None]
+    js -= f * at_pixel(per_pixel(wf * js) / d_safe)
+    jk = g - f * at_pixel(per_pixel(wf * g) / d_safe)
     info = np.zeros((nch + 1, nch + 1))
     meat = np.zeros((nch + 1, nch + 1))
-    for c in range(nch):
-        wc = w[:, c]
-        cols = [g[:, c], ks[c] * dgds[:, c]]
-        proj = []
-        for col in cols:
-            coef = np.bincount(pid_all, wc * f[:, c] * col, npix) / d_safe[:, c]
-            proj.append(col - f[:, c] * coef[pid_all])
-        jk, js = proj
-        wr2 = (wc * res[:, c]) ** 2
-        for (a_, b_), (ja, jb) in (((c, c), (jk, jk)), ((c, nch), (jk, js)),
-                                   ((nch, nch), (js, js))):
-            info[a_, b_] += (wc * ja * jb).sum()
-            meat[a_, b_] += (wr2 * ja * jb).sum()
+    for ja, jb, block in ((jk, jk, "kk"), (jk, js, "ks"), (js, js, "ss")):
+        i_c = colsum(ja, jb) if w is None else colsum(w, ja, jb)
+        m_c = colsum(wres, wres, ja, jb)
+        for c in range(nch):
+            a_, b_ = {"kk": (c, c), "ks": (c, nch), "ss": (nch, nch)}[block]
+            info[a_, b_] += i_c[c]
+            meat[a_, b_] += m_c[c]
             if a_ != b_:
                 info[b_, a_], meat[b_, a_] = info[a_, b_], meat[a_, b_]
     dof_corr = nu * nch / dof  # HC1 small-sample correction (MacKinnon & White 1985)
@@ -313,20 +363,19 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
     except np.linalg.LinAlgError:
         se = np.full(nch + 1, math.inf)
     if variance is None:  # per-pixel sandwich for kd (conditional on ks, s)
-        num = np.stack([np.bincount(pid_all, (w[:, c] * f[:, c] * res[:, c]) ** 2, npix)
-                        for c in range(nch)], -1)
-        nper = np.bincount(pid_all, minlength=npix)[:, None].astype(np.float64)
+        wfr = wf * res
+        num = per_pixel(wfr * wfr)
+        nper = np.bincount(pid, minlength=npix)[:, None].astype(np.float64)
         kd_se = np.sqrt(num / d_safe**2 * nper / np.clip(nper - 1, 1, None))
         kd_se = np.where(d_pc > 0, kd_se, np.inf)
     else:
         kd_se = np.sqrt(sigma2 / np.where(d_pc > 0, d_pc, np.inf))
-    pred = np.zeros_like(_np(radiance))
-    pred[used] = pred_used
-    rel = math.sqrt(float(((b - pred_used) ** 2).mean())) / max(float(np.abs(b).mean()), 1e-300)
-    cols = uniq % (int(pix[:, 1].max(initial=0)) + 1)
-    rows = uniq // (int(pix[:, 1].max(initial=0)) + 1)
-    return PhongFit(kd_pixel=kd, kd_stderr=kd_se, pixel=np.stack([rows, cols], -1),
-                    pixel_samples=np.bincount(pid_all, minlength=npix), ks=ks,
+    pred = np.zeros((len(used), nch))
+    pred[used] = pred_used.T
+    rel = math.sqrt(float(colsum(res, res).sum()) / res.size) / max(float(np.abs(bt).mean()),
+                                                                   1e-300)
+    return PhongFit(kd_pixel=kd, kd_stderr=kd_se, pixel=np.stack([uniq // ncol, uniq % ncol], -1),
+                    pixel_samples=np.bincount(pid, minlength=npix), ks=ks,
                     ks_stderr=se[:nch], s=s, s_stderr=float(se[nch]), chi2_reduced=chi2,
                     residual_rel=rel, n_samples=nu, prediction=pred, used=used,
                     noise_source=src, s_profile=profile)
@@ -389,14 +438,16 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
     x = np.clip(np.asarray(x, np.float64), -1.0, 1.0)
     y = np.asarray(y, np.float64)
     w = np.asarray(w, np.float64)
-    a = legendre_normalized(torch.from_numpy(x), lmax, m=0)  # (N, L+1): sqrt((2l+1)/4π) P_l
+    # (N, L+3): sqrt((2l+1)/4π) P_l; the columns l <= lmax do not depend on the highest degree
+    a2 = legendre_normalized(torch.from_numpy(x), lmax + 2, m=0)
+    a = a2[:, :lmax + 1].contiguous()
+    a2sq = a2 * a2  # for diag(AᵀWA) below, once for every channel
     band = torch.arange(lmax + 1)
     nch = y.shape[1]
     rho = np.zeros((lmax + 1, nch))
     se = np.full((lmax + 1, nch), math.inf)
     res = np.zeros((lmax + 1, nch))
     ginvs = []
-    a2 = legendre_normalized(torch.from_numpy(x), lmax + 2, m=0)
     band2 = torch.arange(lmax + 3)
     shift = np.zeros((lmax + 1, nch))
     for c in range(nch):
@@ -404,7 +455,9 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         yc = torch.from_numpy(np.ascontiguousarray(y[:, c:c + 1]))
         # column equilibration: a per-band penalty equal to diag(AᵀWA) makes solve_wls work on
         # the unit-diagonal normal matrix (its eigenvalue cut then ignores the column scales)
-        d2 = (a * a * wc).sum(0)
+        # (the lmax-band fit's diagonal is the first lmax+1 entries: the same column sums)
+        d2x = (a2sq * wc).sum(0)
+        d2 = d2x[:lmax + 1]
         sol = solve_wls(a, yc, wc, band, rule="none", noise_known=True,
                         band_penalty=torch.where(d2 > 0, d2, torch.ones_like(d2)),
                         keep_covariance=True, noise_source="sandwich (White 1980)")
@@ -416,7 +469,6 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
         ginv = sol.covariance[0] / sol.chi2_reduced[0].clamp_min(1.0)
         ginvs.append(ginv)
         # the same fit two bands higher: how far the truncation moves each band (aliasing test)
-        d2x = (a2 * a2 * wc).sum(0)
         sol2 = solve_wls(a2, yc, wc, band2, rule="none", noise_known=True,
                          band_penalty=torch.where(d2x > 0, d2x, torch.ones_like(d2x)))
         shift[:, c] = (sol2.coefficients[: lmax + 1, 0] - xsol).abs().numpy()
@@ -543,27 +595,30 @@ def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
     amap[fit.pixel[:, 0], fit.pixel[:, 1]] = fit.kd_pixel
     smap = np.full((h, w, nch), np.nan)
     smap[fit.pixel[:, 0], fit.pixel[:, 1]] = fit.kd_stderr
-    n, o, i = _np(samples.normal), _np(samples.wo), _np(samples.wi)
-    e, b = _np(samples.light_radiance), _np(samples.radiance)
-    u = fit.used
-    n, o, i, e, b = n[u], o[u], i[u], e[u], b[u]
-    pix = _np(samples.pixel).astype(np.int64)[u]
-    kd_s = amap[pix[:, 0], pix[:, 1]]
-    cos_i = np.einsum("ij,ij->i", n, i)
-    r = 2.0 * np.einsum("ij,ij->i", n, o)[:, None] * n - o
-    x = np.einsum("ij,ij->i", r, i)
-    dif = kd_s * e * cos_i[:, None] / math.pi
-    y = (b - dif) / e
-    wts = e**2  # y = B_spec / E: uniform weights on B become E² on y
+    used = np.flatnonzero(fit.used)
     rng = np.random.default_rng(seed)
-    sub = rng.choice(len(x), size=max_sh_samples, replace=False) if len(x) > max_sh_samples \
-        else slice(None)
-    sh = measure_brdf_sh(x[sub], y[sub], wts[sub], lmax,
-                         analytic=phong_rho_hat(fit.ks, fit.s, lmax))
-    take = rng.choice(len(x), size=min(max_plot, len(x)), replace=False) if len(x) else \
-        np.zeros(0, np.int64)
-    spec = phong_radiance(n[take], o[take], i[take], e[take], np.zeros(nch), fit.ks, fit.s)
-    dy = (b[take] - spec) / np.clip(e[take] * kd_s[take] / math.pi, 1e-12, None)
+    sub = rng.choice(len(used), size=max_sh_samples, replace=False) \
+        if len(used) > max_sh_samples else np.arange(len(used))
+    take = rng.choice(len(used), size=min(max_plot, len(used)), replace=False) if len(used) \
+        else np.zeros(0, np.int64)
+
+    def specular(k):
+        """Directions, light, radiance, albedo, n·ωi, r·ωi and B_spec/E of used samples ``k``."""
+        idx = used[k]
+        n, o, i = (_rows(v, idx) for v in (samples.normal, samples.wo, samples.wi))
+        e, b = _rows(samples.light_radiance, idx), _rows(samples.radiance, idx)
+        pix = _rows(samples.pixel, idx, dtype=np.int64)
+        kd_s = amap[pix[:, 0], pix[:, 1]]
+        cos_i = np.einsum("ij,ij->i", n, i)
+        dif = kd_s * e * cos_i[:, None] / math.pi
+        return n, o, i, e, b, kd_s, cos_i, _lobe_cosine(n, o, i, cos_i), (b - dif) / e
+
+    # only the samples the SH fit and the plots use are evaluated
+    _, _, _, e, _, _, _, x, y = specular(sub)
+    wts = e**2  # y = B_spec / E: uniform weights on B become E² on y
+    sh = measure_brdf_sh(x, y, wts, lmax, analytic=phong_rho_hat(fit.ks, fit.s, lmax))
+    n, o, i, e, b, kd_s, cos_i, x, y = specular(take)
+    spec = phong_radiance(n, o, i, e, np.zeros(nch), fit.ks, fit.s)
+    dy = (b - spec) / np.clip(e * kd_s / math.pi, 1e-12, None)
     return BrdfMeasurement(phong=fit, sh=sh, albedo_map=amap, albedo_stderr_map=smap,
-                           slice_x=x[take], slice_y=y[take], diffuse_cos=cos_i[take],
-                           diffuse_y=dy)
+                           slice_x=x, slice_y=y, diffuse_cos=cos_i, diffuse_y=dy)

@@ -14,7 +14,6 @@ from brdfcap.core.errors import FitError
 
 from ..diligent_fit import measure_brdf
 from ..lighting import fit_albedo_directional
-from ..render import lambertian_radiance_directional
 from ..result import Estimate, FitResult
 from .base import FitOptions, Known, Problem, register_problem
 
@@ -32,9 +31,8 @@ def problem_brdf_map(samples, known: Known, opts: FitOptions) -> FitResult:
     glob = fit_albedo_directional(samples.normal, samples.wi, samples.light_radiance,
                                   samples.radiance, samples.variance)
     meas = measure_brdf(samples, known.image_shape)
-    lam = lambertian_radiance_directional(samples.normal, samples.wi, samples.light_radiance,
-                                          glob.albedo.to(samples.normal.device))
-    pred = torch.as_tensor(meas.phong.prediction, dtype=lam.dtype, device=lam.device)
+    pred = torch.as_tensor(meas.phong.prediction, dtype=torch.float64,
+                           device=samples.normal.device)
     rec = meas.results()
     rec["lambertian_global"] = {"model": "lambertian",
                                 "parameters": {"albedo": glob.albedo.tolist(),
