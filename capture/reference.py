@@ -53,6 +53,20 @@ Environment lighting (:func:`render_environment`)
       and ``converged`` requires both to be within tolerance.
       Lobe-sampling quadrature does not converge under such probes: it must find the few
       bright texels by point samples.
+    * **Normal grid** (on top of the cell quadrature, for a *view*: ≥ 4096 pixels sharing one
+      ``ωo``, as an orthographic camera gives; with a distant camera and distant light the
+      radiance is then a function of the normal alone): the normals are mapped to the plane by
+      the azimuthal-equidistant projection about ``ωo`` and tiled (tile side = half the lobe's
+      median radius ``w``); each tile carries a lattice of nodes of spacing
+      ``w/8, w/16, w/32`` whose specular radiance is rendered by the cell quadrature at half
+      the tolerance, and its pixels are interpolated from it (Keys cubic, ``O(h³)``). A tile
+      moves to the next spacing while the new nodes differ from the coarser interpolation by
+      more than 8 × the other half of the tolerance (that surplus / 8 is its estimate); tiles
+      that would need more nodes than they have pixels, or more than three levels, and views
+      with fewer than 8 pixels per level-1 node, are rendered directly. 24 pixels per view
+      (half spread, half in the tiles of the largest estimates) are re-rendered directly with
+      a 16 × stricter cell budget: ``check.max_rel_diff``; the view's ``max_rel_err`` is the
+      larger of that and node estimate + interpolation estimate.
     * **Irradiance map** (Lambertian term, ≥ 2048 pixels, ``rel_tol ≥ 1e-4``, non-negative
       probe): the texels above the 33rd-brightest value (when ≥ 10× the mean) are split off
       as tents (their bilinear basis functions) and integrated per pixel with ``4 × 4``
