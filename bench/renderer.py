@@ -170,6 +170,8 @@ def main(argv=None) -> str:
                          f"nodes {nodes}, pixels rendered directly "
                          f"{spec.get('direct_pixels', nt.shape[0])}; error against brute-force "
                          f"texel quadrature on {len(tidx)} of its pixels ({t_tref:.0f} s CPU).")
+    if a.only_target:
+        a.size, ref_idx, t_ref = 256, tidx, t_tref
     head = (f"Reference renderer: Beckmann sigma 0.2 sphere, 6 views of {a.size}², probe {name}; "
             f"{platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} "
             f"thread(s), CPU only (no CUDA device here). Reference: brute-force texel "
