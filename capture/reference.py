@@ -53,6 +53,20 @@ Environment lighting (:func:`render_environment`)
       and ``converged`` requires both to be within tolerance.
       Lobe-sampling quadrature does not converge under such probes: it must find the few
       bright texels by point samples.
+    * **Normal grid** (on top of the cell quadrature, for a *view*: ≥ 4096 pixels sharing one
+      ``ωo``, as an orthographic camera gives; with a distant camera and distant light the
+      radiance is then a function of the normal alone): the normals are mapped to the plane by
+      the azimuthal-equidistant projection about ``ωo`` and tiled (tile side = half the lobe's
+      median radius ``w``); each tile carries a lattice of nodes of spacing
+      ``w/8, w/16, w/32`` whose specular radiance is rendered by the cell quadrature at half
+      the tolerance, and its pixels are interpolated from it (Keys cubic, ``O(h³)``). A tile
+      moves to the next spacing while the new nodes differ from the coarser interpolation by
+      more than 8 × the other half of the tolerance (that surplus / 8 is its estimate); tiles
+      that would need more nodes than they have pixels, or more than three levels, and views
+      with fewer than 8 pixels per level-1 node, are rendered directly. 24 pixels per view
+      (half spread, half in the tiles of the largest estimates) are re-rendered directly with
+      a 16 × stricter cell budget: ``check.max_rel_diff``; the view's ``max_rel_err`` is the
+      larger of that and node estimate + interpolation estimate.
     * **Irradiance map** (Lambertian term, ≥ 2048 pixels, ``rel_tol ≥ 1e-4``, non-negative
       probe): the texels above the 33rd-brightest value (when ≥ 10× the mean) are split off
       as tents (their bilinear basis functions) and integrated per pixel with ``4 × 4``
@@ -409,7 +423,8 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
                                       torch.full((1, 1, 2), 0.5, dtype=torch.float64,
                                                  device=normal.device)) if n_pix else None
             if trial is not None and _use_cells(m, normal, wo, p, method, rel_tol):
-                s, inf = _cells_specular(m, normal, wo, p, rel_tol, floor)
+                s, inf = (_cells_by_view if method == "auto" else _cells_specular)(
+                    m, normal, wo, p, rel_tol, floor)
             elif trial is not None or n_pix == 0:
                 s, inf = _sampled_specular(m, normal, wo, p, rel_tol, max_samples, floor)
             else:
@@ -784,10 +799,15 @@ def _cells(model, normal, wo, pyr, rel_tol, floor, share, alpha):
     return tuple(torch.cat(t) for t in zip(*parts))
 
 
-def _cells_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, floor):
-    """Specular term by adaptive cell quadrature over the probe's pyramid (module doc)."""
+def _cells_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, floor,
+                    pyr: _Pyramid | None = None, check: bool = True):
+    """Specular term by adaptive cell quadrature over the probe's pyramid (module doc).
+
+    ``pyr`` reuses a pyramid built for the same probe; ``check=False`` skips the finer-rule
+    check on a subset (the caller checks the result itself: :func:`_grid_view`).
+    """
     dt = torch.float32 if rel_tol >= _CELLS_MIN_TOL else torch.float64
-    pyr = _pyramid(probe, _PYRAMID_K)
+    pyr = _pyramid(probe, _PYRAMID_K) if pyr is None else pyr
     nrm, w_o = normal.to(dt), wo.to(dt)
     share, alpha = _SHARE, _ALPHA
     out, oabs, err, nodes, lim = _cells(model, nrm, w_o, pyr, rel_tol, floor, share, alpha)
@@ -804,10 +824,11 @@ def _cells_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, 
         rel[bad] = (e2 / _scale(a2, floor)).amax(-1)
     n_pix = normal.shape[0]
     # check: a subset re-rendered with a rule four times stricter, closer cells
-    sub = torch.unique(torch.linspace(0, n_pix - 1, min(n_pix, _CHECK_PIXELS),
+    sub = torch.unique(torch.linspace(0, n_pix - 1, min(n_pix, _CHECK_PIXELS if check else 0),
                                       device=normal.device).long())
     fine = _cells(model, nrm[sub], w_o[sub], pyr, rel_tol, floor, share / 4.0, alpha / 2.0)[0]
     chk = ((fine - out[sub]).abs() / _scale(oabs[sub], floor)).amax(-1)
+    chk = torch.cat([chk, chk.new_zeros(1)])       # (no check: 0)
     info = {"method": "cell-quadrature",
             "samples_per_pixel_max": int(nodes.max()),
             "samples_per_pixel_mean": float(nodes.double().mean()),
@@ -818,8 +839,230 @@ def _cells_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, 
             "rms_rel_err": float(rel.pow(2).mean().sqrt()),
             "finest_level_pixels": int(lim.sum()),
             "check": {"pixels": int(sub.numel()), "max_rel_diff": float(chk.max()),
-                      "rms_rel_diff": float(chk.pow(2).mean().sqrt())},
+                      "rms_rel_diff": float(chk[:-1].pow(2).mean().sqrt()) if sub.numel()
+                      else 0.0},
             "converged": bool((rel <= rel_tol).all()) and bool((chk <= rel_tol).all())}
+    return out, info
+
+
+# ------------------------------------------------------------------ normal grid (one view)
+_GRID_MIN_PIXELS = 4096   # a view (one ωo) needs this many pixels for the normal grid
+_GRID_LEVELS = 3          # finest grid: 2^-3 of the coarsest spacing
+_GRID_SHARE = 0.5         # the nodes get this share of the tolerance, interpolation the rest
+_GRID_CHECK = 24          # pixels per view checked against a direct render with a finer rule
+_GRID_MIN_GAIN = 8        # a view needs this many pixels per node of the level-1 grid
+
+
+def _view_frame(v: torch.Tensor):
+    """Two unit vectors ``e1, e2`` completing ``v`` to a right-handed frame."""
+    a = torch.zeros_like(v)
+    a[2 if abs(float(v[2])) < 0.9 else 0] = 1.0
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(a, v), dim=0)
+    return e1, torch.linalg.cross(v, e1)
+
+
+def _to_plane(n: torch.Tensor, v, e1, e2):
+    """Azimuthal-equidistant coordinates ``θ (cos φ, sin φ)`` of unit ``n`` about ``v``."""
+    a, b = n @ e1, n @ e2
+    s = torch.sqrt(a * a + b * b)
+    th = torch.atan2(s, n @ v)
+    k = torch.where(s > 1e-12, th / s.clamp_min(1e-300), torch.ones_like(s))
+    return a * k, b * k
+
+
+def _from_plane(x: torch.Tensor, y: torch.Tensor, v, e1, e2) -> torch.Tensor:
+    """Inverse of :func:`_to_plane`: the unit vector at angle ``|(x, y)|`` from ``v``."""
+    t = torch.sqrt(x * x + y * y)
+    k = torch.where(t > 1e-12, torch.sin(t) / t.clamp_min(1e-300), torch.ones_like(t))
+    return (k * x)[:, None] * e1 + (k * y)[:, None] * e2 + torch.cos(t)[:, None] * v
+
+
+def _lattice_interp(vals: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor, s: int):
+    """Keys-cubic interpolation of lattice values ``(M, M, C)`` at lattice coordinates.
+
+    Uses the nodes whose indices are multiples of ``s`` around ``(gx, gy)``.
+    """
+    fx, fy = gx / s, gy / s
+    x0, y0 = torch.floor(fx), torch.floor(fy)
+    wx, wy = _keys_weights(fx - x0), _keys_weights(fy - y0)
+    x0, y0 = x0.long(), y0.long()
+    out = 0.0
+    for j, oy in enumerate((-1, 0, 1, 2)):
+        for i, ox in enumerate((-1, 0, 1, 2)):
+            out = out + vals[(x0 + ox) * s, (y0 + oy) * s] * (wx[i] * wy[j])[..., None]
+    return out
+
+
+def _grid_view(model: BRDFModel, normal, v, pyr: _Pyramid, rel_tol, floor):
+    """Specular radiance of one view (one ``ωo = v`` for every pixel) on an adaptive normal grid.
+
+    With a distant camera and distant light the radiance is a function of the normal alone.
+    The normals are mapped to the plane by the azimuthal-equidistant projection about ``v``
+    (smooth, angles preserved along radii) and tiled; every tile carries a lattice of nodes
+    (spacing ``h_j = h₀/2^j``, ``h₀`` half the lobe's median radius) whose radiance is
+    rendered by the cell quadrature at ``_GRID_SHARE · rel_tol``, and its pixels are
+    Keys-cubic interpolated (Keys 1981, error ``O(h³)``). A tile goes from level ``j`` to
+    ``j + 1`` while the new nodes differ from the level-``j`` interpolation by more than the
+    rest of the tolerance (that difference, the level-``j`` error, is the tile's conservative
+    estimate at level ``j + 1``); tiles still over it at the finest level, or where the
+    next level would have more nodes than pixels, are left to the direct rule.
+
+    Returns ``(values (N, C), interpolated (N,) bool, BRDF evaluations, info)``, rows not
+    interpolated zero (the caller renders them directly); or ``None`` when the view has fewer
+    than ``_GRID_MIN_GAIN`` pixels per node of the level-1 grid (no gain).
+    """
+    dev, c = normal.device, pyr.phi[0].shape[1]
+    n_pix = normal.shape[0]
+    e1, e2 = _view_frame(v)
+    x, y = _to_plane(normal, v, e1, e2)
+    sub = torch.linspace(0, n_pix - 1, min(n_pix, 256), device=dev).long()
+    width = float(_lobe_geometry(model, normal[sub], v.expand(sub.numel(), 3))[1].median())
+    h0 = 0.25 * width
+    ext = float(torch.maximum(x.abs(), y.abs()).max())
+    if n_pix < _GRID_MIN_GAIN * math.pi * (ext / (0.5 * h0)) ** 2:   # level-1 nodes of a disc
+        return None
+    big = 1 << (_GRID_LEVELS + 1)            # lattice steps per tile side (tile = 2 h₀)
+    hf = 2.0 * h0 / big                      # finest lattice spacing
+    nt = 2 * math.ceil(ext / (2.0 * h0) + 1e-9) + 2     # tiles per side, one spare each side
+    pad = big                                # two level-0 nodes beyond the outer tiles
+    size = nt * big + 2 * pad + 1
+    org = -0.5 * nt * 2.0 * h0 - pad * hf    # plane coordinate of lattice index 0
+    gx, gy = (x - org) / hf, (y - org) / hf
+    ta = ((gx - pad) / big).floor().long().clamp(0, nt - 1)
+    tb = ((gy - pad) / big).floor().long().clamp(0, nt - 1)
+    tile_of = ta * nt + tb
+    tiles, pix_tile = torch.unique(tile_of, return_inverse=True)
+    n_in_tile = torch.bincount(pix_tile, minlength=tiles.numel())
+    vals = torch.zeros(size, size, c, dtype=torch.float64, device=dev)
+    done = torch.zeros(size, size, dtype=torch.bool, device=dev)
+    stats = {"nodes": 0, "node_rel_err": 0.0, "evals": 0.0}
+
+    def render(ix, iy):
+        lin = torch.unique(ix.reshape(-1) * size + iy.reshape(-1))
+        lin = lin[~done.reshape(-1)[lin]]
+        if lin.numel() == 0:
+            return
+        n = _from_plane(org + (lin // size).double() * hf, org + (lin % size).double() * hf,
+                        v, e1, e2)
+        val, inf = _cells_specular(model, n.to(normal.dtype), v.expand_as(n), None, rel_tol *
+                                   _GRID_SHARE, floor, pyr=pyr, check=False)
+        vals.reshape(-1, c)[lin] = val
+        done.reshape(-1)[lin] = True
+        stats["nodes"] += lin.numel()
+        stats["evals"] += inf["samples_per_pixel_mean"] * lin.numel()
+        stats["node_rel_err"] = max(stats["node_rel_err"], inf["max_rel_err"])
+
+    def boxes(t, j, inner):
+        """Lattice indices ``(T, K, 1)``, ``(T, 1, K)`` of level-``j`` nodes of tiles ``t``.
+
+        With the stencil ring around the tile unless ``inner``.
+        """
+        s = big >> (j + 1)                   # level-j node step in lattice units
+        k = torch.arange(0, big // s, device=dev) if inner else \
+            torch.arange(-1, big // s + 2, device=dev)
+        sa = (t // nt) * big + pad
+        sb = (t % nt) * big + pad
+        return (sa[:, None] + s * k)[:, :, None], (sb[:, None] + s * k)[:, None, :]
+
+    level = torch.full((tiles.numel(),), -1, dtype=torch.long, device=dev)
+    est = torch.zeros(tiles.numel(), dtype=torch.float64, device=dev)
+    active = torch.arange(tiles.numel(), device=dev)
+    ix, iy = boxes(tiles, 0, False)
+    render(*torch.broadcast_tensors(ix, iy))
+    for j in range(_GRID_LEVELS):
+        if active.numel() == 0:
+            break
+        # tiles whose next level would cost more nodes than they have pixels: direct rule
+        new_nodes = (big >> (_GRID_LEVELS - j - 1)) ** 2 * 3 // 4
+        active = active[n_in_tile[active] > new_nodes]
+        if active.numel() == 0:
+            break
+        t = tiles[active]
+        ix, iy = boxes(t, j + 1, False)
+        render(*torch.broadcast_tensors(ix, iy))
+        ix, iy = torch.broadcast_tensors(*boxes(t, j + 1, True))
+        ref = vals[ix, iy]                                       # (T, K, K, C)
+        coarse = _lattice_interp(vals, ix.double(), iy.double(), big >> j)
+        rel = ((ref - coarse).abs() / ref.abs().clamp_min(floor).clamp_min(1e-300))
+        rel = rel.amax(-1).flatten(1).amax(1)                    # (T,)
+        # level j's error, scaled to level j + 1 by the rule's order h³ (Keys 1981)
+        rel = rel / 8.0
+        ok = rel <= (1.0 - _GRID_SHARE) * rel_tol
+        level[active[ok]] = j + 1
+        est[active[ok]] = rel[ok]
+        active = active[~ok]
+    lev = level[pix_tile]
+    inter = lev >= 0
+    out = torch.zeros(n_pix, c, dtype=torch.float64, device=dev)
+    for j in range(1, _GRID_LEVELS + 1):
+        sel = torch.nonzero(lev == j).reshape(-1)
+        if sel.numel():
+            out[sel] = _lattice_interp(vals, gx[sel], gy[sel], big >> j)
+    # check: a subset of interpolated pixels against a direct render with a finer rule
+    # (half spread over the view, half in the tiles of the largest estimates)
+    ids = torch.nonzero(inter).reshape(-1)
+    spread = torch.linspace(0, ids.numel() - 1, min(ids.numel(), _GRID_CHECK // 2),
+                            device=dev).long()
+    tl = pix_tile[ids]                      # one pixel (the first) of each of the worst tiles
+    first = torch.full((tiles.numel(),), ids.numel(), dtype=torch.long, device=dev)
+    first = first.scatter_reduce(0, tl, torch.arange(ids.numel(), device=dev), "amin")
+    worst = first[torch.argsort(torch.where(first < ids.numel(), est, -1.0),
+                                descending=True)[:_GRID_CHECK // 2]]
+    worst = worst[worst < ids.numel()]
+    chk_ids = ids[torch.unique(torch.cat([spread, worst]))]
+    fine, _, _, _, _ = _cells(model, normal[chk_ids].to(torch.float32), v.expand(
+        chk_ids.numel(), 3).to(torch.float32), pyr, rel_tol, floor, _SHARE / 16.0, _ALPHA / 4.0)
+    chk = ((fine - out[chk_ids]).abs() / fine.abs().clamp_min(floor).clamp_min(1e-300))
+    chk = chk.amax(-1) if chk.numel() else chk.new_zeros(1)
+    interp_est = float(est[level >= 0].max()) if bool((level >= 0).any()) else 0.0
+    info = {"pixels": n_pix, "interpolated": int(inter.sum()), "nodes": stats["nodes"],
+            "spacing_rad": [h0 / 2 ** j for j in range(1, _GRID_LEVELS + 1)],
+            "tiles_per_level": [int((level == j).sum()) for j in range(1, _GRID_LEVELS + 1)],
+            "node_rel_err": stats["node_rel_err"], "interpolation_rel_err": interp_est,
+            "check": {"pixels": int(chk_ids.numel()), "max_rel_diff": float(chk.max()),
+                      "rms_rel_diff": float(chk.pow(2).mean().sqrt())},
+            "max_rel_err": max(stats["node_rel_err"] + interp_est, float(chk.max()))}
+    return out, inter, stats["evals"], info
+
+
+def _cells_by_view(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, floor):
+    """Specular term by cell quadrature, views with many pixels on a normal grid.
+
+    Views (pixels sharing one ``ωo``) of ≥ ``_GRID_MIN_PIXELS`` go to :func:`_grid_view`; the
+    rest, and the pixels a grid leaves, to :func:`_cells_specular`.
+    """
+    dev = normal.device
+    n_pix = normal.shape[0]
+    pyr = _pyramid(probe, _PYRAMID_K)
+    views, inv = torch.unique(wo, dim=0, return_inverse=True)
+    counts = torch.bincount(inv, minlength=views.shape[0])
+    out = torch.zeros(n_pix, probe.image.shape[2], dtype=torch.float64, device=dev)
+    direct = torch.ones(n_pix, dtype=torch.bool, device=dev)
+    grids, evals = [], 0.0
+    for g in torch.nonzero(counts >= _GRID_MIN_PIXELS).reshape(-1).tolist():
+        idx = torch.nonzero(inv == g).reshape(-1)
+        res = _grid_view(model, normal[idx], views[g], pyr, rel_tol, floor)
+        if res is None:
+            continue
+        val, inter, ev, inf = res
+        out[idx[inter]] = val[inter]
+        direct[idx[inter]] = False
+        grids.append(inf)
+        evals += ev
+    rest = torch.nonzero(direct).reshape(-1)
+    info = {"method": "cell-quadrature"}
+    errs = [g["max_rel_err"] for g in grids]
+    if rest.numel():
+        val, info = _cells_specular(model, normal[rest], wo[rest], probe, rel_tol, floor,
+                                    pyr=pyr)
+        out[rest] = val
+        evals += info["samples_per_pixel_mean"] * rest.numel()
+        errs.append(info["max_rel_err"])
+    if grids:
+        info = {**info, "method": "cell-quadrature+normal-grid", "direct_pixels": int(rest.numel()),
+                "views": grids, "samples_per_pixel_mean": evals / max(n_pix, 1),
+                "max_rel_err": max(errs),
+                "converged": info.get("converged", True) and max(errs) <= rel_tol}
     return out, info
 
 

@@ -150,3 +150,48 @@ def test_cells_cuda_matches_cpu():
     a = render_environment(m, n, wo, probe, rel_tol=3e-3, method="cells")
     b = render_environment(m, n.cuda(), wo.cuda(), probe, rel_tol=3e-3, method="cells").cpu()
     np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-2)
+
+
+def _sphere_view(size, view):
+    """Normals and (constant) view directions of a unit sphere seen orthographically."""
+    v = torch.nn.functional.normalize(torch.tensor(view, dtype=torch.float64), dim=0)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(up, v), dim=0)
+    e2 = torch.linalg.cross(v, e1)
+    u = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2.0 - 1.0
+    a, b = torch.meshgrid(u, u, indexing="ij")
+    hit = a ** 2 + b ** 2 < 0.99
+    z = torch.sqrt(1.0 - a ** 2 - b ** 2).clamp_min(0.0)
+    n = (a[..., None] * e1 + b[..., None] * e2 + z[..., None] * v)[hit]
+    return n, v.expand_as(n).clone()
+
+
+def test_normal_grid_of_one_view_agrees_with_texel_quadrature():
+    """One orthographic view (one ωo, ≥ 4096 pixels): "auto" renders the specular term on a
+    normal grid and interpolates. Checked on 30 pixels against the per-pixel texel quadrature
+    of the point evaluation (no pyramid, no grid) and against its own reported error.
+    """
+    probe = LatLongProbe(_spiky_probe())
+    params = {"kd": [0.0] * 3, "f0": [0.9, 0.6, 0.3], "sigma": 0.5}
+    n, wo = _sphere_view(90, (1.0, 0.4, 0.3))
+    tol = 1e-2
+    a, ia = render_environment(Beckmann(**params), n, wo, probe, rel_tol=tol, return_info=True)
+    spec = ia["terms"]["specular"]
+    assert spec["method"] == "cell-quadrature+normal-grid"
+    (view,) = spec["views"]
+    # fewer renders than pixels (what makes it faster; more so at 256², bench/renderer.py)
+    assert view["interpolated"] >= 0.5 * n.shape[0]
+    assert view["nodes"] + spec["direct_pixels"] < 0.9 * n.shape[0]
+    # a view too small to gain (fewer than 8 pixels per level-1 node): rendered directly
+    n2, wo2 = _sphere_view(74, (1.0, 0.4, 0.3))
+    assert n2.shape[0] >= 4096
+    _, i2 = render_environment(Beckmann(**params), n2, wo2, probe, rel_tol=tol, return_info=True)
+    assert i2["terms"]["specular"]["method"] == "cell-quadrature"
+    assert view["check"]["pixels"] >= 12
+    sub = torch.linspace(0, n.shape[0] - 1, 30).long()
+    b = render_environment(_NoSamplerBeckmann(**params), n[sub], wo[sub], probe, rel_tol=1e-3)
+    scale = torch.maximum(b.abs(), 0.01 * b.abs().median())
+    rel = float(((a[sub] - b).abs() / scale).amax(-1).max())
+    reported = spec["max_rel_err"]
+    assert rel <= 2 * reported + 1e-3, f"error {rel:.2e}, reported {reported:.2e}"
+    assert rel < 2 * tol, f"max relative difference {rel:.2e}"
