@@ -1,0 +1,292 @@
+r"""Exact specular design of the lighting problem: rows by quadrature of the point evaluation.
+
+The reflected radiance of any BRDF is linear in the incident lighting: with
+``L(ω) = Σ_lm L_lm Y_lm(ω)``, sample ``p`` (normal ``n_p``, view ``ωo_p``) sees
+
+.. math:: B_p = \sum_{lm} L_{lm} \int_{S^2} Y_{lm}(\omega)\, f(n_p, \omega, \omega_{o,p})
+          \max(n_p\cdot\omega, 0)\, d\omega = \sum_{lm} D_{p,lm} L_{lm}
+
+(the reflection equation, R&H 2001 eq. 1 / seed eq. 1, before any approximation). Ramamoorthi
+& Hanrahan's signal-processing form replaces ``D_{p,lm}`` by ``Λ_l ρ̂_l Y_lm(r_p)``
+(SIGGRAPH 2001 eqs. 18-20 for Phong, seed eqs. 4-6; the microfacet lobe is taken radially
+symmetric about ``r`` with ``Λ_l ρ̂_l ≈ exp(−(σl)²)``); that is exact only for a lobe radially
+symmetric about ``r`` that the horizon never cuts. :class:`ExactRows` computes ``D_{p,lm}`` of
+the specular part itself by numerical quadrature of the registered model's
+:meth:`~brdfcap.fit.brdf.base.BRDFModel.eval_specular_cos` (Phong with its horizon clamp;
+Cook–Torrance with Fresnel, Smith ``G`` and ``1/(4 cos θi cos θo)``).
+
+The rule (ours; the renderers of :mod:`brdfcap.capture.reference` and
+:mod:`brdfcap.truth_matrix` sum probe texels instead) is a lobe-adapted product Gauss rule in a
+frame about the mirror direction ``r_p``, one per sample:
+
+* ``θ`` (angle from ``r``) on ``[0, θ_p]``, ``θ_p = min(θ_lobe, π/2 + γ_p)`` with ``γ_p`` the
+  exitance angle (``cos γ = n·r = n·ωo``; beyond ``π/2 + γ`` the whole ring lies below the
+  horizon) and ``θ_lobe`` where the lobe at normal exitance has fallen below
+  :data:`LOBE_TOL` of its peak (times :data:`LOBE_MARGIN`), Gauss–Legendre with the
+  ``sin θ`` Jacobian, in two panels split at ``π/2 − γ_p``, where rings start to cross the
+  horizon (otherwise at the middle);
+* ``φ`` about ``r``: on a ring wholly above the horizon the trapezoid rule (exact for
+  trigonometric polynomials below its node count); on a ring the horizon cuts, Gauss–Legendre
+  on the arc above it, ``cos(φ − φ_n) > −cot θ cot γ`` — the integrand's jump at the horizon
+  (Phong's clamp) is an end point of the rule, never inside it.
+
+Node counts follow the bandwidth of the integrand, ``L_t = L + L_b`` (``L`` the lighting
+bandwidth, ``L_b`` one above the last band where the model's normal-exitance filter
+:meth:`~brdfcap.fit.brdf.base.BRDFModel.sh_filter_exact` exceeds :data:`FILTER_TOL` of its
+DC): per θ panel ``⌈L_t Δθ/4⌉ + 8`` nodes (a band-``k`` function on an interval of length Δ
+needs Chebyshev degree ``~kΔ/2``, Gauss–Legendre integrates twice its node count), and
+``⌈L_t sin(min(θ_p, π/2))⌉ + 12`` in ``φ``, times ``refine``. Convergence (measured,
+``tests/fit/test_exact_design.py``): doubling every node count changes the rows by less than
+:data:`CONVERGENCE_TOL` of the largest row entry. Samples are processed in chunks
+(:data:`CHUNK_BYTES` of SH values at a time).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections import OrderedDict
+
+import numpy as np
+import torch
+from scipy.special import roots_legendre
+
+from .brdf.base import BRDFModel, orthonormal_basis
+from .sh import real_sh
+
+__all__ = ["ExactRows", "exact_rows", "lobe_extent", "lobe_bandwidth", "node_counts",
+           "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
+           "CONVERGENCE_TOL", "CHUNK_BYTES"]
+
+#: The lighting problem's specular designs: ``exact`` (this module) and ``rh`` (R&H 2001's form).
+DESIGNS = ("exact", "rh")
+#: The lobe's extent: where the transfer at normal exitance falls below this fraction of its peak.
+LOBE_TOL = 1e-9
+#: Safety factor on the lobe's extent (off-normal exitance widens and shifts the lobe).
+LOBE_MARGIN = 1.3
+#: The lobe's bandwidth: bands above the last whose normal-exitance filter exceeds this fraction of
+#: the DC are not counted (the rule resolves the horizon's kink by its end points, not by nodes).
+FILTER_TOL = 1e-4
+#: Stated convergence: doubling the nodes changes no row entry by more than this fraction of the
+#: largest entry (checked by the tests).
+CONVERGENCE_TOL = 1e-4
+#: SH values (float64) evaluated at once per chunk of samples.
+CHUNK_BYTES = 1 << 27
+#: Designs kept between fits (the matrix and repeated fits reuse them), by content key.
+_CACHE: OrderedDict = OrderedDict()
+_CACHE_SIZE = 2
+
+
+def exact_design_applies(model: BRDFModel) -> bool:
+    """Whether the exact design differs from R&H's form: a finite specular lobe (not Dirac)."""
+    return model.has_specular and not model.delta and model.name != "lambertian"
+
+
+def _transfer_normal(model: BRDFModel, th: torch.Tensor, affine: bool) -> torch.Tensor:
+    """Specular transfer at normal exitance (``n = ωo = z``), ``ωi`` at angles ``th``, ``(T,)``.
+
+    The scale-linear part (:meth:`specular_affine` ``a``, else the channel mean) per unit scale.
+    """
+    wi = torch.stack([torch.sin(th), torch.zeros_like(th), torch.cos(th)], -1)
+    n = torch.zeros_like(wi)
+    n[:, 2] = 1.0
+    aff = model.specular_affine(n, wi, n) if affine else None
+    if aff is not None:
+        return aff[0] + aff[1]
+    scale = model.specular_scale.to(th).clamp_min(1e-300)
+    return (model.eval_specular_cos(n, wi, n) / scale).mean(-1)
+
+
+def lobe_extent(model: BRDFModel) -> float:
+    """Angular radius ``θ_lobe`` of the specular lobe about ``r`` (module doc), radians, ≤ π."""
+    th = torch.linspace(0.0, math.pi / 2, 4097, dtype=torch.float64)
+    g = _transfer_normal(model, th, True).abs()
+    peak = float(g.max())
+    if not peak > 0:
+        return math.pi
+    above = torch.nonzero(g > LOBE_TOL * peak).flatten()
+    last = float(th[int(above.max())]) if above.numel() else float(th[1])
+    if last >= th[-2]:  # the lobe reaches the horizon at normal exitance: integrate everything
+        return math.pi
+    return min(math.pi, LOBE_MARGIN * (last + float(th[1])))
+
+
+def lobe_bandwidth(model: BRDFModel, cap: int = 400) -> int:
+    """``L_b``: one above the last band where ``|sh_filter_exact|`` ≥ :data:`FILTER_TOL` × DC."""
+    f = model.sh_filter_exact(cap).abs()
+    big = torch.nonzero(f >= FILTER_TOL * f[0].clamp_min(1e-300)).flatten()
+    return min(cap, int(big.max()) + 1) if big.numel() else 0
+
+
+def node_counts(lmax: int, lobe_band: int, theta_max: float, refine: float = 1.0
+                ) -> tuple[int, int]:
+    """``(nodes per θ panel, nodes in φ)`` for bandwidth ``lmax + lobe_band`` (module doc)."""
+    lt = lmax + lobe_band
+    nt = int(math.ceil(refine * (math.ceil(lt * theta_max / 4.0) + 8)))
+    nphi = int(math.ceil(refine * (math.ceil(lt * math.sin(min(theta_max, math.pi / 2))) + 12)))
+    return nt, nphi
+
+
+def _gauss(n: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    x, w = roots_legendre(n)
+    return (torch.as_tensor(np.asarray(x), dtype=dtype, device=device),
+            torch.as_tensor(np.asarray(w), dtype=dtype, device=device))
+
+
+def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int):
+    """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc)."""
+    dt, dev = normal.dtype, normal.device
+    cg = (normal * r).sum(-1).clamp(-1.0, 1.0)  # cos γ
+    gam = torch.arccos(cg)
+    t, b = orthonormal_basis(r)
+    phin = torch.atan2((normal * b).sum(-1), (normal * t).sum(-1))  # azimuth of n about r
+    hi = (math.pi / 2 + gam).clamp(max=theta_lobe)
+    split = math.pi / 2 - gam
+    mid = torch.where((split > 0) & (split < hi), split, 0.5 * hi)
+    x, w = _gauss(nt, dt, dev)
+    u = 0.5 * (x + 1.0)
+    th = torch.cat([mid[:, None] * u, mid[:, None] + (hi - mid)[:, None] * u], 1)  # (P, 2nt)
+    wt = torch.cat([0.5 * mid[:, None] * w, 0.5 * (hi - mid)[:, None] * w], 1) * torch.sin(th)
+    st, ct = torch.sin(th), torch.cos(th)
+    # horizon: cosθ cosγ + sinθ sinγ cos(φ − φn) > 0  <=>  cos(φ − φn) > c
+    sg = torch.sin(gam)[:, None]
+    c = -(ct * cg[:, None]) / (st * sg).clamp_min(1e-300)
+    c = torch.where(st * sg > 1e-300, c, torch.where(ct * cg[:, None] > 0, -2.0, 2.0))
+    full = c <= -1.0
+    alpha = torch.arccos(c.clamp(-1.0, 1.0))  # half-width of the lit arc (0 when none)
+    xp, wp = _gauss(nphi, dt, dev)
+    k = torch.arange(nphi, dtype=dt, device=dev)
+    ph_full = phin[:, None, None] + 2.0 * math.pi * (k + 0.5) / nphi - math.pi  # (P, 1, nphi)
+    ph_arc = phin[:, None, None] + alpha[..., None] * xp
+    ph = torch.where(full[..., None], ph_full, ph_arc)  # (P, 2nt, nphi)
+    wph = torch.where(full[..., None], torch.full_like(ph, 2.0 * math.pi / nphi),
+                      alpha[..., None] * wp)
+    d = (ct[..., None, None] * r[:, None, None, :]
+         + (st[..., None] * torch.cos(ph))[..., None] * t[:, None, None, :]
+         + (st[..., None] * torch.sin(ph))[..., None] * b[:, None, None, :])
+    p = normal.shape[0]
+    return d.reshape(p, -1, 3), (wt[..., None] * wph).reshape(p, -1)
+
+
+def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
+               refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES
+               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    r"""Specular rows ``D_{p,lm}`` by quadrature (module doc), without diffuse part.
+
+    Parameters
+    ----------
+    model : BRDFModel
+        Registered model with a finite specular lobe.
+    normal, reflected : torch.Tensor
+        ``(N, 3)`` unit normals and reflected view directions ``r = 2(n·ωo)n − ωo`` (world
+        frame; ``ωo = 2(n·r)n − r`` is recovered from them).
+    lmax : int
+        Lighting bandwidth.
+    refine : float
+        Multiplies every node count (the convergence check uses 2).
+
+    Returns
+    -------
+    tuple
+        ``(a, q)``: ``(N, K)`` rows of the part linear in the specular scale, per unit scale
+        (:meth:`~brdfcap.fit.brdf.base.BRDFModel.specular_affine` ``a``), and the rows of its
+        scale-free offset ``q`` (``None`` when ``q ≡ 0``, e.g. Phong, Fresnel "none"). A model
+        whose transfer is not affine in one scale (exact Fresnel) gives ``(N, C, K)`` rows of
+        the full per-channel transfer as ``a`` (scale included) and ``q = None``.
+    """
+    normal = normal.to(torch.float64)
+    r = reflected.to(torch.float64)
+    wo = 2.0 * (normal * r).sum(-1, keepdim=True) * normal - r
+    th_lobe = lobe_extent(model)
+    nt, nphi = node_counts(lmax, lobe_bandwidth(model), th_lobe, refine)
+    m = 2 * nt * nphi
+    k = (lmax + 1) ** 2
+    step = max(1, chunk_bytes // (8 * m * max(k, 8)))
+    n_all = normal.shape[0]
+    probe = model.specular_affine(normal[:1], normal[:1], wo[:1])
+    affine = probe is not None
+    rows_a = normal.new_zeros((n_all, k) if affine else (n_all, model.channels, k))
+    rows_q = normal.new_zeros((n_all, k)) if affine else None
+    any_q = False
+    for s in range(0, n_all, step):
+        e = min(s + step, n_all)
+        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi)
+        p = e - s
+        nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
+        ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
+        dd = d.reshape(-1, 3)
+        y = real_sh(dd, lmax).reshape(p, m, k)
+        if affine:
+            a, q = model.specular_affine(nn, dd, ww)
+            rows_a[s:e] = torch.einsum("pm,pmk->pk", w * a.reshape(p, m), y)
+            if bool((q != 0).any()):
+                any_q = True
+                rows_q[s:e] = torch.einsum("pm,pmk->pk", w * q.reshape(p, m), y)
+        else:
+            g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
+            rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
+    return rows_a, (rows_q if any_q else None)
+
+
+def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:
+    h = hashlib.sha1()
+    h.update(repr(model.to_json()).encode())
+    h.update(repr(refine).encode())
+    for x in (normal, r):
+        h.update(x.detach().to(torch.float64).cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+class ExactRows:
+    """Exact specular rows of one sample set, computed once at the largest bandwidth asked.
+
+    Call ``rows(s, e, lmax)`` for rows ``s:e`` of the scale-linear part ``a`` (``(e−s, K)``, or
+    ``(e−s, C, K)`` for a non-affine model); :meth:`offset` gives those of ``q`` (or ``None``).
+    The columns of bands ``≤ l`` are a prefix of any larger bandwidth's, so one table serves
+    every smaller one. The last :data:`_CACHE_SIZE` tables are kept by content (BRDF, normals,
+    reflected directions), so repeated fits of the same samples do not integrate again.
+    """
+
+    def __init__(self, model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
+                 refine: float = 1.0):
+        self.model, self.normal, self.reflected, self.refine = model, normal, reflected, refine
+        self.key = _key(model, normal, reflected, refine)
+        self.lmax = -1
+        self.a: torch.Tensor | None = None
+        self.q: torch.Tensor | None = None
+        hit = _CACHE.get(self.key)
+        if hit is not None:
+            self.lmax, self.a, self.q = hit
+
+    def _ensure(self, lmax: int) -> None:
+        if lmax > self.lmax:
+            self.a, self.q = exact_rows(self.model, self.normal, self.reflected, lmax,
+                                        self.refine)
+            self.lmax = lmax
+            _CACHE[self.key] = (self.lmax, self.a, self.q)
+            _CACHE.move_to_end(self.key)
+            while len(_CACHE) > _CACHE_SIZE:
+                _CACHE.popitem(last=False)
+
+    @property
+    def per_channel(self) -> bool:
+        """Whether the rows are ``(N, C, K)`` (a model not affine in one scale)."""
+        n = self.normal[:1].to(torch.float64)
+        r = self.reflected[:1].to(torch.float64)
+        wo = 2.0 * (n * r).sum(-1, keepdim=True) * n - r
+        return self.model.specular_affine(n, n, wo) is None
+
+    def has_offset(self, lmax: int) -> bool:
+        """Whether the transfer has a scale-free part ``q`` (Schlick with its ``(1 − f0) c⁵``)."""
+        self._ensure(lmax)
+        return self.q is not None
+
+    def __call__(self, s: int, e: int, lmax: int) -> torch.Tensor:
+        """Rows ``s:e`` of ``a`` at bandwidth ``lmax``."""
+        self._ensure(lmax)
+        return self.a[s:e, ..., : (lmax + 1) ** 2]
+
+    def offset(self, s: int, e: int, lmax: int) -> torch.Tensor | None:
+        """Rows ``s:e`` of ``q`` at bandwidth ``lmax`` (``None`` when ``q ≡ 0``)."""
+        self._ensure(lmax)
+        return None if self.q is None else self.q[s:e, : (lmax + 1) ** 2]
