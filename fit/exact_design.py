@@ -243,13 +243,15 @@ class ExactRows:
     Call ``rows(s, e, lmax)`` for rows ``s:e`` of the scale-linear part ``a`` (``(e−s, K)``, or
     ``(e−s, C, K)`` for a non-affine model); :meth:`offset` gives those of ``q`` (or ``None``).
     The columns of bands ``≤ l`` are a prefix of any larger bandwidth's, so one table serves
-    every smaller one. The last :data:`_CACHE_SIZE` tables are kept by content (BRDF, normals,
-    reflected directions), so repeated fits of the same samples do not integrate again.
+    every smaller one; the first table is built at ``lmax_min`` at least. The last
+    :data:`_CACHE_SIZE` tables are kept by content (BRDF, normals, reflected directions), so
+    repeated fits of the same samples do not integrate again.
     """
 
     def __init__(self, model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
-                 refine: float = 1.0):
+                 refine: float = 1.0, lmax_min: int = 0):
         self.model, self.normal, self.reflected, self.refine = model, normal, reflected, refine
+        self.lmax_min = lmax_min
         self.key = _key(model, normal, reflected, refine)
         self.lmax = -1
         self.a: torch.Tensor | None = None
@@ -260,6 +262,7 @@ class ExactRows:
 
     def _ensure(self, lmax: int) -> None:
         if lmax > self.lmax:
+            lmax = max(lmax, self.lmax_min)
             self.a, self.q = exact_rows(self.model, self.normal, self.reflected, lmax,
                                         self.refine)
             self.lmax = lmax

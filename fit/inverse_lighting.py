@@ -39,8 +39,9 @@ from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
 from .solve import apply_design, noise_weights, restrict, solve_bayes, solve_wls
 
-__all__ = ["fit_lighting", "lighting_design", "design_used", "internal_lmax", "SHRows",
-           "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES", "SH_TABLE_MEMORY"]
+__all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
+           "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
+           "SH_TABLE_MEMORY"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -286,7 +287,8 @@ def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None,
     filters times their scales; slope 2 of :data:`brdfcap.fit.solve.SLOPE_PRIOR`), stays below
     :data:`INTERNAL_REL` of the DC's (R&H 2001 §3: ``B_lm = Λ_l ρ̂_l L_lm``, so bands the filter
     kills cannot alias into the data), capped at :data:`INTERNAL_LMAX_CAP` and where the
-    unknowns would exceed a quarter of the samples (``(L+1)² ≤ N/4``). :func:`fit_lighting`
+    unknowns would exceed a quarter of the samples (``(L+1)² ≤ N/4``; ``≤ N`` for a glossy
+    lobe with the exact design, :func:`_sample_cap`). :func:`fit_lighting`
     also tries larger bandwidths up to the cap and keeps the one of highest evidence (a real
     probe's spectrum is flatter than slope 2). With the exact design (``design``,
     :func:`design_used`) the specular filter is the lobe's own at normal exitance
@@ -302,8 +304,21 @@ def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None,
     amp = f * (2 * l + 1).sqrt() / (l + 1)
     big = torch.nonzero(amp >= INTERNAL_REL * amp.max().clamp_min(1e-300)).flatten()
     carried = int(big.max()) if big.numel() else 0
-    cap = top if n_samples is None else max(lmax, min(top, math.isqrt(max(n_samples, 1)) // 2 - 1))
+    cap = top if n_samples is None else max(lmax, min(top, _sample_cap(n_samples, spec, design)))
     return max(lmax, min(max(lmax + 2, carried), cap))
+
+
+def _sample_cap(n_samples: int, spec: BRDFSpec, design: str) -> int:
+    """Largest internal band ``N`` samples allow: ``(L+1)² ≤ N/4``; ``≤ N`` for exact glossy.
+
+    A glossy lobe carries bands far above ``sqrt(N)/2`` (Phong s = 64: ``Λ_l ρ̂_l = 0.27`` at
+    ``l = 13``, the N/4 cap of one 32² view), and bands the fit does not solve alias into those
+    it does; under the exact design (its rows right at every band) solving up to ``K = N``
+    unknowns, the ones the data do not fix held by the prior, removed that aliasing in the
+    done-when matrix (``docs/fitting.md``). Elsewhere the conservative ``N/4`` stays.
+    """
+    root = math.isqrt(max(n_samples, 1))
+    return root - 1 if design_used(spec, design) == "exact" else root // 2 - 1
 
 
 def _split_halves(n: int, view: torch.Tensor | None, good: torch.Tensor) -> torch.Tensor:
@@ -440,6 +455,25 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
     return fit
 
 
+def predict_radiance(fit: SHFit, normal: torch.Tensor, reflected: torch.Tensor | None,
+                     chunk: int = 32768) -> torch.Tensor:
+    """Radiance ``(N, C)`` the fitted lighting predicts, by the design the fit used.
+
+    ``fit.design["used"]`` (``"exact"`` or R&H's form) and the fit's BRDF; ``normal``,
+    ``reflected`` as for :func:`fit_lighting`.
+    """
+    n = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
+    r = None if reflected is None else torch.nn.functional.normalize(
+        reflected.to(torch.float64), dim=-1)
+    used = getattr(fit, "design", {}).get("used", "rh")
+    d, scale = lighting_design(fit.brdf, n, r, fit.lmax,
+                               design="exact" if used == "exact" else "rh")
+    x = fit.coefficients.to(torch.float64)
+    return torch.cat([apply_design(d(s, min(s + chunk, n.shape[0])), scale, x)
+                      for s in range(0, n.shape[0], chunk)]) if n.shape[0] else \
+        x.new_zeros(0, x.shape[1])
+
+
 def _design_record(spec: BRDFSpec, design: str) -> dict:
     """``fit.design``: which specular forward model the fit used, in words (fit notes)."""
     used = design_used(spec, design)
@@ -508,8 +542,12 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     shared = _shared_design(spec)
     per_table = 0 if shared else limit // (1 + (r is not None))
     exact = design_used(spec, design) == "exact"
+    cap = max(lrep, min(INTERNAL_LMAX_CAP, _sample_cap(nsamp, spec, design)))
+    # the exact rows are integrated once, at the largest bandwidth the fit may try (the cap;
+    # smaller ones are prefixes): glossy fits usually go there, and a second pass costs more
     tables = (SHRows(n, per_table), None if r is None or exact else SHRows(r, per_table),
-              ExactRows(spec.brdf, n, r) if exact else None)
+              ExactRows(spec.brdf, n, r, lmax_min=cap if lmax_internal is None
+                        else max(int(lmax_internal), lrep)) if exact else None)
 
     def in_scan_order(sol):
         if inv is not None:
@@ -527,7 +565,6 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     def scan(x):
         return x if inv is None else x[inv]
 
-    cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
     if lmax_internal is not None:
         full, cscale = solve_to([max(int(lmax_internal), lrep)])
     else:
