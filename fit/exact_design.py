@@ -52,9 +52,11 @@ import torch
 from scipy.special import roots_legendre
 
 from .brdf.base import BRDFModel, orthonormal_basis
+from .rotation import wigner_d_real_blocks
 from .sh import real_sh
 
-__all__ = ["ExactRows", "exact_rows", "lobe_extent", "lobe_bandwidth", "node_counts",
+__all__ = ["ExactRows", "exact_rows", "exact_rows_direct", "exact_rows_rotated", "TABLE_ANGLES",
+           "lobe_extent", "lobe_bandwidth", "node_counts",
            "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
            "CONVERGENCE_TOL", "CHUNK_BYTES"]
 
@@ -70,6 +72,10 @@ FILTER_TOL = 1e-4
 #: Stated convergence: doubling the nodes changes no row entry by more than this fraction of the
 #: largest entry (checked by the tests).
 CONVERGENCE_TOL = 1e-4
+#: Exitance angles of the canonical table of the rotated evaluation (uniform on [0, γmax]).
+TABLE_ANGLES = 193
+#: The rotated evaluation is used when there are more samples than this many times the table.
+ROTATE_ABOVE = 2
 #: SH values (float64) evaluated at once per chunk of samples.
 CHUNK_BYTES = 1 << 27
 #: Designs kept between fits (the matrix and repeated fits reuse them), by content key.
@@ -169,9 +175,27 @@ def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, np
 
 
 def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
-               refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES
+               refine: float = 1.0, method: str = "auto"
                ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    r"""Specular rows ``D_{p,lm}`` by quadrature (module doc), without diffuse part.
+    """Return the specular rows ``D_{p,lm}`` (module doc), direct or rotated.
+
+    :func:`exact_rows_direct` or, for many samples, :func:`exact_rows_rotated` (``method``:
+    ``"auto"``, ``"direct"``, ``"rotated"``). ``"auto"`` rotates when there are more than
+    :data:`ROTATE_ABOVE` × :data:`TABLE_ANGLES` samples. Arguments and returns as
+    :func:`exact_rows_direct`.
+    """
+    if method not in ("auto", "direct", "rotated"):
+        raise ValueError(f"unknown method {method!r}; valid: auto, direct, rotated")
+    if method == "rotated" or (method == "auto"
+                               and normal.shape[0] > ROTATE_ABOVE * TABLE_ANGLES):
+        return exact_rows_rotated(model, normal, reflected, lmax, refine)
+    return exact_rows_direct(model, normal, reflected, lmax, refine)
+
+
+def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
+                      lmax: int, refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES
+                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    r"""Specular rows ``D_{p,lm}`` by the per-sample quadrature (module doc), no diffuse part.
 
     Parameters
     ----------
@@ -226,6 +250,111 @@ def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, 
             g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
             rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
     return rows_a, (rows_q if any_q else None)
+
+
+def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
+                       lmax: int, refine: float = 1.0, angles: int = TABLE_ANGLES,
+                       chunk: int = 16384) -> tuple[torch.Tensor, torch.Tensor | None]:
+    r"""Return the rows of :func:`exact_rows_direct` by rotating a canonical table.
+
+    An isotropic BRDF's transfer depends on the sample only through its frame and the exitance
+    angle ``γ``: in the local frame ``n = z``, ``ωo = (sin γ, 0, cos γ)`` its coefficients
+    ``c_lm(γ)`` are the direct rows of that canonical sample, tabulated at ``angles`` uniform
+    ``γ`` on ``[0, max γ_p]`` and interpolated per sample (4-point Lagrange). With ``R_p`` the
+    sample's local-to-world rotation (columns: the tangent toward ``ωo``, ``n × t``, ``n``),
+    ``Y_l(R ω') = D^l(R) Y_l(ω')`` (:mod:`brdfcap.fit.rotation`) gives
+    ``D_{p,l·} = D^l(R_p) c_l(γ_p)``, applied as ZYZ Euler rotations ``Z(a) D(M) Z(b) D(M)ᵀ
+    Z(c)`` with one fixed ``D(M)`` (``M = Rx(−90°)``, Ivanic & Ruedenberg 1996 for its blocks):
+    cost ``angles ×`` the direct rule plus ``~(8/3) L³`` flops per sample. Anisotropic models
+    are not supported (none is registered).
+    """
+    normal = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
+    r = reflected.to(torch.float64)
+    cg = (normal * r).sum(-1).clamp(-1.0, 1.0)
+    wo = 2.0 * cg[:, None] * normal - r
+    gam = torch.arccos(cg.clamp(0.0, 1.0))
+    gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
+    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64)
+    z = torch.zeros_like(grid)
+    cn = torch.stack([z, z, torch.ones_like(grid)], -1)
+    cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
+    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine)  # (G, K) or (G, C, K)
+    # 4-point Lagrange weights on the uniform grid
+    h = gmax / (angles - 1)
+    u = gam / h
+    i0 = (u.floor().long() - 1).clamp(0, angles - 4)
+    t = u - i0.to(u.dtype)  # position in node units from node i0, in [0, 3]
+    nodes = torch.arange(4, dtype=torch.float64)
+    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64)
+    for j in range(4):
+        for k in range(4):
+            if k != j:
+                wts[:, j] = wts[:, j] * (t - nodes[k]) / (nodes[j] - nodes[k])
+    # local frames: t along the tangential part of ωo (any tangent at γ = 0)
+    tang = wo - cg[:, None] * normal
+    fallback, _ = orthonormal_basis(normal)
+    tn = tang.norm(dim=-1, keepdim=True)
+    tang = torch.where(tn > 1e-9, tang / tn.clamp_min(1e-300), fallback)
+    rot = torch.stack([tang, torch.linalg.cross(normal, tang), normal], -1)  # columns
+    k = (lmax + 1) ** 2
+    # ZYZ Euler angles of each frame, R = Rz(a) Ry(b) Rz(c); Ry(b) = M Rz(b) Mᵀ with
+    # M = Rx(−90°) (takes z to y), so D(R) = Z(a) D(M) Z(b) D(M)ᵀ Z(c): z-rotations mix the
+    # (m, −m) pairs, D(M) is one fixed block per band
+    b_ang = torch.arccos(normal[:, 2].clamp(-1.0, 1.0))
+    a_ang = torch.atan2(normal[:, 1], normal[:, 0])
+    q = _rot_z(-b_ang, 1) @ _rot_z(-a_ang, 2) @ rot
+    c_ang = torch.atan2(q[:, 1, 0], q[:, 0, 0])
+    m_fixed = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
+                           dtype=torch.float64)
+    jb = wigner_d_real_blocks(m_fixed, lmax)
+
+    def rotate(table):
+        out = normal.new_zeros((normal.shape[0],) + table.shape[1:])
+        for s in range(0, normal.shape[0], chunk):
+            e = min(s + chunk, normal.shape[0])
+            idx = i0[s:e, None] + torch.arange(4)
+            c = (table[idx] * wts[s:e].reshape(e - s, 4, *([1] * (table.ndim - 1)))).sum(1)
+            for l in range(lmax + 1):
+                sl = slice(l * l, (l + 1) ** 2)
+                v = _z_band(c[..., sl], c_ang[s:e], l)
+                v = v @ jb[l]  # D(M)ᵀ v, rows as vectors
+                v = _z_band(v, b_ang[s:e], l)
+                v = v @ jb[l].T
+                out[s:e, ..., sl] = _z_band(v, a_ang[s:e], l)
+        return out
+
+    assert ta.shape[-1] == k
+    return rotate(ta), (None if tq is None else rotate(tq))
+
+
+def _rot_z(ang: torch.Tensor, axis: int) -> torch.Tensor:
+    """``(P, 3, 3)`` rotations by ``ang`` about z (``axis = 2``) or y (``axis = 1``)."""
+    c, s = torch.cos(ang), torch.sin(ang)
+    o, z = torch.ones_like(ang), torch.zeros_like(ang)
+    if axis == 2:
+        rows = [[c, -s, z], [s, c, z], [z, z, o]]
+    else:
+        rows = [[c, z, s], [z, o, z], [-s, z, c]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def _z_band(v: torch.Tensor, ang: torch.Tensor, l: int) -> torch.Tensor:
+    """Band-``l`` coefficients ``(P, ..., 2l+1)`` of ``f(Rz(ang)ᵀ ω)`` (real SH, index ``l+m``).
+
+    ``Y_lm ∝ cos mφ``, ``Y_l,−m ∝ sin mφ`` (docs/conventions.md), so ``c_m → cos(mα) c_m −
+    sin(mα) c_−m`` and ``c_−m → sin(mα) c_m + cos(mα) c_−m``.
+    """
+    if l == 0:
+        return v
+    m = torch.arange(1, l + 1, dtype=v.dtype, device=v.device)
+    shape = (ang.shape[0],) + (1,) * (v.ndim - 2) + (l,)
+    cs = torch.cos(ang[:, None] * m).reshape(shape)
+    sn = torch.sin(ang[:, None] * m).reshape(shape)
+    pos, neg = v[..., l + 1:], v[..., :l].flip(-1)  # c_m and c_−m for m = 1..l
+    out = v.clone()
+    out[..., l + 1:] = cs * pos - sn * neg
+    out[..., :l] = (sn * pos + cs * neg).flip(-1)
+    return out
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:
