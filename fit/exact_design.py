@@ -55,8 +55,8 @@ from .brdf.base import BRDFModel, orthonormal_basis
 from .rotation import wigner_d_real_blocks
 from .sh import real_sh
 
-__all__ = ["ExactRows", "exact_rows", "exact_rows_direct", "exact_rows_rotated", "TABLE_ANGLES",
-           "lobe_extent", "lobe_bandwidth", "node_counts",
+__all__ = ["ExactRows", "exact_rows", "horizon_clamped", "exact_rows_direct",
+           "exact_rows_rotated", "TABLE_ANGLES", "lobe_extent", "lobe_bandwidth", "node_counts",
            "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
            "CONVERGENCE_TOL", "CHUNK_BYTES"]
 
@@ -117,6 +117,20 @@ def lobe_extent(model: BRDFModel) -> float:
     return min(math.pi, LOBE_MARGIN * (last + float(th[1])))
 
 
+def _lobe_extent_full(model: BRDFModel) -> float:
+    """``θ_lobe`` about ``r`` of an unclamped lobe, scanned over the whole sphere (radians)."""
+    th = torch.linspace(0.0, math.pi, 8193, dtype=torch.float64)
+    wi = torch.stack([torch.sin(th), torch.zeros_like(th), torch.cos(th)], -1)
+    n = torch.zeros_like(wi)
+    n[:, 2] = 1.0
+    g = (model.eval_specular_cos(n, wi, n) / model.specular_scale.to(th).clamp_min(1e-300)) \
+        .abs().mean(-1)
+    above = torch.nonzero(g > LOBE_TOL * g.max().clamp_min(1e-300)).flatten()
+    if not above.numel() or float(th[int(above.max())]) >= th[-2]:
+        return math.pi
+    return min(math.pi, LOBE_MARGIN * float(th[int(above.max()) + 1]))
+
+
 def lobe_bandwidth(model: BRDFModel, cap: int = 400) -> int:
     """``L_b``: one above the last band where ``|sh_filter_exact|`` ≥ :data:`FILTER_TOL` × DC."""
     f = model.sh_filter_exact(cap).abs()
@@ -139,15 +153,41 @@ def _gauss(n: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
             torch.as_tensor(np.asarray(w), dtype=dtype, device=device))
 
 
-def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int):
-    """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc)."""
+def horizon_clamped(model: BRDFModel) -> bool:
+    """Whether the model's transfer is 0 for light below the horizon (``n·ωi ≤ 0``).
+
+    Every built-in model is; a model that is not (a test's unclamped lobe) gets whole rings, no
+    horizon arcs. Probed at a grazing view (80°) on 256 directions just below the horizon.
+    """
+    g = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(256, 3, dtype=torch.float64, generator=g),
+                                      dim=-1)
+    d[:, 2] = -(0.001 + 0.3 * d[:, 2].abs())
+    d = torch.nn.functional.normalize(d, dim=-1)
+    d[:64] = torch.nn.functional.normalize(
+        torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64) + 0.2 * d[:64]
+        * torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)
+        + torch.tensor([0.0, 0.0, -0.01], dtype=torch.float64), dim=-1)
+    n = torch.zeros_like(d)
+    n[:, 2] = 1.0
+    th = math.radians(80.0)
+    wo = torch.tensor([math.sin(th), 0.0, math.cos(th)], dtype=torch.float64).expand_as(d)
+    return not bool((model.eval_specular_cos(n, d, wo) != 0).any())
+
+
+def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int,
+           clip: bool = True):
+    """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc).
+
+    ``clip=False`` (a model not clamped at the horizon): whole rings to ``θ_lobe``.
+    """
     dt, dev = normal.dtype, normal.device
     cg = (normal * r).sum(-1).clamp(-1.0, 1.0)  # cos γ
     gam = torch.arccos(cg)
     t, b = orthonormal_basis(r)
     phin = torch.atan2((normal * b).sum(-1), (normal * t).sum(-1))  # azimuth of n about r
-    hi = (math.pi / 2 + gam).clamp(max=theta_lobe)
-    split = math.pi / 2 - gam
+    hi = (math.pi / 2 + gam).clamp(max=theta_lobe) if clip else torch.full_like(gam, theta_lobe)
+    split = math.pi / 2 - gam if clip else torch.full_like(gam, -1.0)
     mid = torch.where((split > 0) & (split < hi), split, 0.5 * hi)
     x, w = _gauss(nt, dt, dev)
     u = 0.5 * (x + 1.0)
@@ -158,6 +198,8 @@ def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, np
     sg = torch.sin(gam)[:, None]
     c = -(ct * cg[:, None]) / (st * sg).clamp_min(1e-300)
     c = torch.where(st * sg > 1e-300, c, torch.where(ct * cg[:, None] > 0, -2.0, 2.0))
+    if not clip:
+        c = torch.full_like(c, -2.0)
     full = c <= -1.0
     alpha = torch.arccos(c.clamp(-1.0, 1.0))  # half-width of the lit arc (0 when none)
     xp, wp = _gauss(nphi, dt, dev)
@@ -222,6 +264,9 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     r = reflected.to(torch.float64)
     wo = 2.0 * (normal * r).sum(-1, keepdim=True) * normal - r
     th_lobe = lobe_extent(model)
+    clip = horizon_clamped(model)
+    if not clip:
+        th_lobe = _lobe_extent_full(model)
     nt, nphi = node_counts(lmax, lobe_bandwidth(model), th_lobe, refine)
     m = 2 * nt * nphi
     k = (lmax + 1) ** 2
@@ -234,7 +279,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     any_q = False
     for s in range(0, n_all, step):
         e = min(s + step, n_all)
-        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi)
+        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip)
         p = e - s
         nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
         ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)

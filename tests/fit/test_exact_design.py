@@ -169,7 +169,7 @@ def test_design_matches_texel_renderer_per_channel_fresnel():
 @pytest.mark.skipif(not (PROBES / "grace.hdr").is_file(),
                     reason=f"reference light probes not found under {PROBES}")
 def test_glossy_fit_on_texel_render_grace():
-    """Beckmann σ = 0.2 (full Cook–Torrance), one view of 24² under the Grace probe, rendered
+    """Beckmann σ = 0.2 (full Cook–Torrance), one view of 32² under the Grace probe, rendered
     by texel quadrature; lighting fit at lmax 4 with the exact design, 1% noise, 4 repetitions:
     every determined band within 10% of the probe's projection and ≥ 85% of the determined
     coefficients inside their 95% intervals; the design used is recorded. (With R&H's form
@@ -177,7 +177,7 @@ def test_glossy_fit_on_texel_render_grace():
     """
     probe = load_probe(PROBES / "grace.hdr", 2)
     spec = BRDFSpec("microfacet", kd=[0.0] * 3, f0=[1.0] * 3, sigma=0.2)
-    n, wo, view = sphere_views(1, 24)
+    n, wo, view = sphere_views(1, 32)
     r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
     b = render_texels(spec, n, wo, probe)
     truth = project_envmap(probe, 4, quadrature="pixel")
