@@ -80,6 +80,8 @@ ROTATE_ABOVE = 2
 CHUNK_BYTES = 1 << 27
 #: Designs kept between fits (the matrix and repeated fits reuse them), by content key.
 _CACHE: OrderedDict = OrderedDict()
+#: Largest table (bytes) kept between fits: larger ones (real captures) are freed with the fit.
+CACHE_BYTES = 1 << 28
 _CACHE_SIZE = 2
 
 
@@ -418,8 +420,8 @@ class ExactRows:
     ``(e−s, C, K)`` for a non-affine model); :meth:`offset` gives those of ``q`` (or ``None``).
     The columns of bands ``≤ l`` are a prefix of any larger bandwidth's, so one table serves
     every smaller one; the first table is built at ``lmax_min`` at least. The last
-    :data:`_CACHE_SIZE` tables are kept by content (BRDF, normals, reflected directions), so
-    repeated fits of the same samples do not integrate again.
+    :data:`_CACHE_SIZE` tables up to :data:`CACHE_BYTES` are kept by content (BRDF, normals,
+    reflected directions), so repeated fits of the same samples do not integrate again.
     """
 
     def __init__(self, model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
@@ -440,10 +442,12 @@ class ExactRows:
             self.a, self.q = exact_rows(self.model, self.normal, self.reflected, lmax,
                                         self.refine)
             self.lmax = lmax
-            _CACHE[self.key] = (self.lmax, self.a, self.q)
-            _CACHE.move_to_end(self.key)
-            while len(_CACHE) > _CACHE_SIZE:
-                _CACHE.popitem(last=False)
+            size = 8 * (self.a.numel() + (0 if self.q is None else self.q.numel()))
+            if size <= CACHE_BYTES:
+                _CACHE[self.key] = (self.lmax, self.a, self.q)
+                _CACHE.move_to_end(self.key)
+                while len(_CACHE) > _CACHE_SIZE:
+                    _CACHE.popitem(last=False)
 
     @property
     def per_channel(self) -> bool:
