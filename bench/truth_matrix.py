@@ -38,6 +38,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path, default=REPO / "tmp" / "cache" / "truth_matrix")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--render-only", action="store_true", help="fill the cache, fit nothing")
+    ap.add_argument("--design", default="exact", choices=("exact", "rh"),
+                    help="specular forward model of the lighting fit (fit_lighting design)")
     ap.add_argument("--markdown", type=Path, default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -66,7 +68,8 @@ def main(argv=None) -> int:
                 continue
             for v in views:
                 for lmax in lmaxes:
-                    c = run_cell(data, p.stem, name, v, lmax, reps=args.reps)
+                    c = run_cell(data, p.stem, name, v, lmax, reps=args.reps,
+                                 design=args.design)
                     cells.append(c)
                     print(markdown_table([c]).splitlines()[-1] + f" {c.seconds:.1f}s",
                           file=sys.stderr, flush=True)

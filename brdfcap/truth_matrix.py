@@ -250,10 +250,11 @@ def score(fit, truth: torch.Tensor, lmax: int) -> tuple[float, int, int, int, in
 
 
 def run_cell(data: dict, probe: str, name: str, views: int, lmax: int, *, reps: int = 2,
-             rel_noise: float = 0.01, seed: int = 0) -> Cell:
+             rel_noise: float = 0.01, seed: int = 0, design: str = "exact") -> Cell:
     """Fit one cell ``reps`` times with fresh Gaussian noise (σ = ``rel_noise`` × mean per channel).
 
     ``views = 1`` uses view 0 of the render. The variance is given to the fit (a noise model).
+    ``design``: the lighting fit's specular forward model (``fit_lighting``'s ``design``).
     """
     spec = BRDFS[name]
     sel = data["view"] < views
@@ -269,7 +270,7 @@ def run_cell(data: dict, probe: str, name: str, views: int, lmax: int, *, reps: 
     for _ in range(reps):
         bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
         fit = fit_lighting(n, bn, lmax, spec, reflected=None if spec.model == "lambertian"
-                           else r, variance=var, view=view)
+                           else r, variance=var, view=view, design=design)
         worst, hits, tot, meas, tru = score(fit, truth, lmax)
         cell.worst_error = max(cell.worst_error, worst)
         cell.hits += hits

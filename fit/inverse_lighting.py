@@ -33,13 +33,15 @@ from .conditioning import (
     suggest_lmax,
     weak_prior_variance,
 )
+from .exact_design import DESIGNS, ExactRows, exact_design_applies
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
 from .solve import apply_design, noise_weights, restrict, solve_bayes, solve_wls
 
-__all__ = ["fit_lighting", "lighting_design", "internal_lmax", "SHRows", "LiveRows", "INTERNAL_REL",
-           "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES", "SH_TABLE_MEMORY"]
+__all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
+           "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
+           "SH_TABLE_MEMORY"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -93,30 +95,52 @@ def _shared_design(spec: BRDFSpec) -> bool:
 
 
 def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor | None,
-                    lmax: int, tables: tuple[SHRows, SHRows | None] | None = None,
-                    keep: int = 0):
+                    lmax: int, tables: tuple | None = None, keep: int = 0,
+                    design: str = "exact"):
     """Design of the lighting problem for ``spec`` (module doc).
 
     Returns ``(f, scale)``: ``f(start, stop)`` gives rows ``(n, K)`` (then channel ``c`` is
     ``scale[c] · f``) or ``(n, C, K)`` (``scale`` is ``None``). ``tables``: :class:`SHRows` of
-    ``normal`` and ``reflected`` to reuse across designs of several bandwidths. ``f.live``
-    ``(K,)`` marks the columns that can be nonzero; an ``(n, K)`` design also has
-    ``f.live_rows(start, stop)``, its live columns alone, kept in one table built on first use
-    when it has at most ``keep`` entries (:class:`LiveRows`).
+    ``normal`` and ``reflected`` (and optionally a third entry, the
+    :class:`~brdfcap.fit.exact_design.ExactRows` of the samples) to reuse across designs of
+    several bandwidths. ``f.live`` ``(K,)`` marks the columns that can be nonzero; an ``(n, K)``
+    design also has ``f.live_rows(start, stop)``, its live columns alone, kept in one table built
+    on first use when it has at most ``keep`` entries (:class:`LiveRows`).
+
+    ``design``: ``"exact"`` (default) integrates the specular lobe's point evaluation against
+    each ``Y_lm`` per sample (:mod:`brdfcap.fit.exact_design`) for every model with a finite
+    lobe; ``"rh"`` uses R&H 2001's reflection-space form ``Λ_l ρ̂_l Y_lm(r)`` (eqs. 18-20).
+    The Lambertian part is R&H's ``Â_l/π Y_lm(n)`` in both (exact: eqs. 7-8). :func:`design_used`
+    says which one applies.
     """
+    if design not in DESIGNS:
+        raise ValueError(f"unknown lighting design {design!r}; valid: {', '.join(DESIGNS)}")
     if tables is None:
         tables = (SHRows(normal, 0), None if reflected is None else SHRows(reflected, 0))
-    sh_n, sh_r = tables
+    sh_n, sh_r = tables[0], tables[1]
     band = band_of_index(lmax).to(normal.device)
     fd = diffuse_filter(lmax).to(normal.device)[band]
-    fs = specular_filter(spec, lmax).to(normal.device)[band]
     kd = spec.kd.to(normal.device)
     ks = spec.specular_scale.to(normal.device)
     spec_on = spec.model != "lambertian" and bool((ks != 0).any())
     if spec_on and reflected is None:
         raise ValueError(f"a {spec.model} BRDF needs the reflected view directions")
+    exact = spec_on and design_used(spec, design) == "exact"
+    offset = None
+    if exact:
+        ex = tables[2] if len(tables) > 2 and tables[2] is not None else \
+            ExactRows(spec.brdf, normal, reflected)
+        fs = torch.ones_like(fd)
+        if ex.per_channel:
+            return _exact_per_channel(ex, sh_n, fd, kd, lmax), None
+        sh_r = ex
+        offset = ex.offset if ex.has_offset(lmax) else None
+    else:
+        fs = specular_filter(spec, lmax).to(normal.device)[band]
     n = normal.shape[0]
     live = (fd != 0) | (fs != 0)
+    if offset is not None:
+        return _exact_offset(ex, sh_n, fd, kd, ks, lmax, live, n, keep)
     if not spec_on or not bool((kd != 0).any()):
         # shared design, per-channel scale kd (or ks): rows of one direction set times a filter
         sh, filt, scale = (sh_n, fd, kd) if not spec_on else (sh_r, fs, ks)
@@ -135,13 +159,56 @@ def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tenso
 
         return _tag(both, live, LiveRows(both, live, n, keep)), ks
 
-    def design(s: int, e: int) -> torch.Tensor:
+    def design_(s: int, e: int) -> torch.Tensor:
         a = (sh_n(s, e, lmax) * fd)[:, None, :] * kd[None, :, None]
         if spec_on:
             a = a + (sh_r(s, e, lmax) * fs)[:, None, :] * ks[None, :, None]
         return a
 
-    return _tag(design, live, None), None
+    return _tag(design_, live, None), None
+
+
+def design_used(spec: BRDFSpec, design: str = "exact") -> str:
+    """Which specular design a fit of ``spec`` uses: ``"exact"``, ``"rh"`` or ``"none"``.
+
+    ``"none"``: no specular part (Lambertian, or a zero specular scale); a Dirac lobe (mirror)
+    keeps R&H's form, which is exact for it.
+    """
+    if spec.model == "lambertian" or not bool((spec.specular_scale != 0).any()):
+        return "none"
+    if design == "exact" and exact_design_applies(spec.brdf):
+        return "exact"
+    return "rh"
+
+
+def _exact_per_channel(ex, sh_n, fd, kd, lmax):
+    """``(n, C, K)`` design of a model not affine in one scale (exact Fresnel)."""
+    def rows(s: int, e: int) -> torch.Tensor:
+        return (sh_n(s, e, lmax) * fd)[:, None, :] * kd[None, :, None] + ex(s, e, lmax)
+
+    return _tag(rows, torch.ones_like(fd, dtype=torch.bool), None)
+
+
+def _exact_offset(ex, sh_n, fd, kd, ks, lmax, live, n, keep):
+    """Design ``kd_c Â/π Y(n) + ks_c a + q`` of a transfer ``ks · a + q`` (Schlick's Fresnel).
+
+    One ``(n, K)`` design with unit channel scales when every channel has the same ``kd`` and
+    ``ks``; otherwise ``(n, C, K)``.
+    """
+    if bool((kd == kd[0]).all()) and bool((ks == ks[0]).all()):
+        k0, s0 = kd[0], ks[0]
+
+        def shared(s: int, e: int) -> torch.Tensor:
+            return sh_n(s, e, lmax) * (fd * k0) + ex(s, e, lmax) * s0 + ex.offset(s, e, lmax)
+
+        return _tag(shared, live, LiveRows(shared, live, n, keep)), torch.ones_like(ks)
+
+    def rows(s: int, e: int) -> torch.Tensor:
+        return ((sh_n(s, e, lmax) * fd)[:, None, :] * kd[None, :, None]
+                + ex(s, e, lmax)[:, None, :] * ks[None, :, None]
+                + ex.offset(s, e, lmax)[:, None, :])
+
+    return _tag(rows, live, None), None
 
 
 def _tag(design, live: torch.Tensor, live_rows):
@@ -213,7 +280,8 @@ class LiveRows:
         return self._rows_into(None, s, e)
 
 
-def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> int:
+def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None,
+                  design: str = "exact") -> int:
     """Smallest bandwidth the lighting is solved to: what the BRDF filter carries above ``lmax``.
 
     The smallest ``L ≥ lmax + 2`` beyond which the filtered amplitude of a band of a power-law
@@ -221,13 +289,16 @@ def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> in
     filters times their scales; slope 2 of :data:`brdfcap.fit.solve.SLOPE_PRIOR`), stays below
     :data:`INTERNAL_REL` of the DC's (R&H 2001 §3: ``B_lm = Λ_l ρ̂_l L_lm``, so bands the filter
     kills cannot alias into the data), capped at :data:`INTERNAL_LMAX_CAP` and where the
-    unknowns would exceed a quarter of the samples (``(L+1)² ≤ N/4``). :func:`fit_lighting`
+    unknowns would exceed a quarter of the samples (``(L+1)² ≤ N/4``; ``≤ N`` for a glossy
+    lobe with the exact design, :func:`_sample_cap`). :func:`fit_lighting`
     also tries larger bandwidths up to the cap and keeps the one of highest evidence (a real
-    probe's spectrum is flatter than slope 2).
+    probe's spectrum is flatter than slope 2). With the exact design (``design``,
+    :func:`design_used`) the specular filter is the lobe's own at normal exitance
+    (``sh_filter_exact``), not R&H's approximation of it.
     """
     top = INTERNAL_LMAX_CAP
     fd = diffuse_filter(top) * float(spec.kd.abs().max()) if spec.kd.numel() else 0.0
-    fs = specular_filter(spec, top) * float(spec.specular_scale.abs().max()) \
+    fs = _specular_filter(spec, top, design) * float(spec.specular_scale.abs().max()) \
         if spec.model != "lambertian" and spec.specular_scale.numel() else 0.0
     f = torch.maximum(torch.as_tensor(fd).abs().expand(top + 1),
                       torch.as_tensor(fs).abs().expand(top + 1))
@@ -235,8 +306,21 @@ def internal_lmax(spec: BRDFSpec, lmax: int, n_samples: int | None = None) -> in
     amp = f * (2 * l + 1).sqrt() / (l + 1)
     big = torch.nonzero(amp >= INTERNAL_REL * amp.max().clamp_min(1e-300)).flatten()
     carried = int(big.max()) if big.numel() else 0
-    cap = top if n_samples is None else max(lmax, min(top, math.isqrt(max(n_samples, 1)) // 2 - 1))
+    cap = top if n_samples is None else max(lmax, min(top, _sample_cap(n_samples, spec, design)))
     return max(lmax, min(max(lmax + 2, carried), cap))
+
+
+def _sample_cap(n_samples: int, spec: BRDFSpec, design: str) -> int:
+    """Largest internal band ``N`` samples allow: ``(L+1)² ≤ N/4``; ``≤ N`` for exact glossy.
+
+    A glossy lobe carries bands far above ``sqrt(N)/2`` (Phong s = 64: ``Λ_l ρ̂_l = 0.27`` at
+    ``l = 13``, the N/4 cap of one 32² view), and bands the fit does not solve alias into those
+    it does; under the exact design (its rows right at every band) solving up to ``K = N``
+    unknowns, the ones the data do not fix held by the prior, removed that aliasing in the
+    done-when matrix (``docs/fitting.md``). Elsewhere the conservative ``N/4`` stays.
+    """
+    root = math.isqrt(max(n_samples, 1))
+    return root - 1 if design_used(spec, design) == "exact" else root // 2 - 1
 
 
 def _split_halves(n: int, view: torch.Tensor | None, good: torch.Tensor) -> torch.Tensor:
@@ -254,7 +338,8 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
                  variance: torch.Tensor | None = None, rule: str = "gcv",
                  noise_model=None, band_penalty: torch.Tensor | None = None,
                  scale_fixing: str = "", chunk: int = 32768, method: str = "bayes",
-                 view: torch.Tensor | None = None, lmax_internal: int | None = None) -> SHFit:
+                 view: torch.Tensor | None = None, lmax_internal: int | None = None,
+                 design: str = "exact") -> SHFit:
     """Recover SH lighting ``L_lm`` per channel from samples of a known BRDF.
 
     Parameters
@@ -288,6 +373,10 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
         ``(N,)`` view index of each sample (split halves and per-view residuals).
     lmax_internal : int, optional
         Override :func:`internal_lmax`.
+    design : {"exact", "rh"}
+        Specular forward model (:func:`lighting_design`): ``"exact"`` (default) integrates the
+        registered model's point evaluation per sample (:mod:`brdfcap.fit.exact_design`);
+        ``"rh"`` is R&H 2001's ``Λ_l ρ̂_l Y_lm(r)``. The one used is in ``fit.design``.
 
     Returns
     -------
@@ -315,25 +404,29 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
     b = torch.where(good[:, None], b, torch.full_like(b, math.nan))
     var = None if variance is None else variance.to(torch.float64)
     w, src = noise_weights(b, var)
+    if design not in DESIGNS:
+        raise ValueError(f"unknown lighting design {design!r}; valid: {', '.join(DESIGNS)}")
     if method == "bayes":
-        return _fit_lighting_bayes(n, r, b, w, var is not None, src, lmax, spec, noise_model,
-                                   scale_fixing, chunk, view, good, lmax_internal)
+        fit = _fit_lighting_bayes(n, r, b, w, var is not None, src, lmax, spec, noise_model,
+                                  scale_fixing, chunk, view, good, lmax_internal, design)
+        fit.design = _design_record(spec, design)
+        return fit
     if method != "tikhonov":
         raise ValueError(f"unknown method {method!r}; valid: bayes, tikhonov")
     if lmax == "auto":
         raise ValueError("lmax='auto' needs method='bayes'")
     band = band_of_index(lmax).to(n.device)
-    design, cscale = lighting_design(spec, n, r, lmax)
-    sol = solve_wls(design, b, w, band, rule=rule, noise_known=var is not None,
+    design_f, cscale = lighting_design(spec, n, r, lmax, design=design)
+    sol = solve_wls(design_f, b, w, band, rule=rule, noise_known=var is not None,
                     band_penalty=band_penalty, noise_source=src, chunk=chunk,
                     channel_scale=cscale)
     if noise_model is not None and getattr(noise_model, "is_known", False):
-        pred = torch.cat([apply_design(design(s, min(s + chunk, len(n))), cscale, sol.coefficients)
-                          for s in range(0, len(n), chunk)])
+        pred = torch.cat([apply_design(design_f(s, min(s + chunk, len(n))), cscale,
+                                       sol.coefficients) for s in range(0, len(n), chunk)])
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
                                dtype=torch.float64, device=n.device)
         w, src = noise_weights(b, var2)
-        sol = solve_wls(design, b, w, band, rule=rule, noise_known=True,
+        sol = solve_wls(design_f, b, w, band, rule=rule, noise_known=True,
                         band_penalty=band_penalty, noise_source=src + " (IRLS at the fit)",
                         chunk=chunk, channel_scale=cscale)
     rows, ill = band_statistics(sol)
@@ -360,7 +453,41 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
     fit.prediction = prediction
     fit.brdf = spec
     fit.solution = sol
+    fit.design = _design_record(spec, design)
     return fit
+
+
+def predict_radiance(fit: SHFit, normal: torch.Tensor, reflected: torch.Tensor | None,
+                     chunk: int = 32768) -> torch.Tensor:
+    """Radiance ``(N, C)`` the fitted lighting predicts, by the design the fit used.
+
+    ``fit.design["used"]`` (``"exact"`` or R&H's form) and the fit's BRDF; ``normal``,
+    ``reflected`` as for :func:`fit_lighting`.
+    """
+    n = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
+    r = None if reflected is None else torch.nn.functional.normalize(
+        reflected.to(torch.float64), dim=-1)
+    used = getattr(fit, "design", {}).get("used", "rh")
+    d, scale = lighting_design(fit.brdf, n, r, fit.lmax,
+                               design="exact" if used == "exact" else "rh")
+    x = fit.coefficients.to(torch.float64)
+    return torch.cat([apply_design(d(s, min(s + chunk, n.shape[0])), scale, x)
+                      for s in range(0, n.shape[0], chunk)]) if n.shape[0] else \
+        x.new_zeros(0, x.shape[1])
+
+
+def _design_record(spec: BRDFSpec, design: str) -> dict:
+    """``fit.design``: which specular forward model the fit used, in words (fit notes)."""
+    used = design_used(spec, design)
+    text = {"none": "Lambertian only: R&H's clamped-cosine filter A_l/pi Y_lm(n) (exact)",
+            "rh": "R&H 2001 reflection-space form ks Lambda_l rho_l Y_lm(r) (approximate "
+                  "unless the lobe is radially symmetric about r and above the horizon)"
+                  if spec.brdf.delta is False else
+                  "R&H 2001 form ks Y_lm(r) (exact for a mirror)",
+            "exact": "exact: each row integrates the model's point evaluation "
+                     "f(n, w, wo) max(n.w, 0) against Y_lm by a lobe-adapted Gauss rule about "
+                     "r (fit.exact_design); Lambertian part A_l/pi Y_lm(n)"}[used]
+    return {"requested": design, "used": used, "text": text}
 
 
 def _prediction(spec: BRDFSpec, eps: float) -> dict | None:
@@ -371,16 +498,24 @@ def _prediction(spec: BRDFSpec, eps: float) -> dict | None:
         return None
 
 
-def _band_filter(spec: BRDFSpec, lmax: int) -> torch.Tensor:
+def _specular_filter(spec: BRDFSpec, lmax: int, design: str) -> torch.Tensor:
+    """Specular ``Λ_l ρ̂_l`` without scale: the exact normal-exitance one for the exact design."""
+    if design_used(spec, design) == "exact":
+        return spec.brdf.sh_filter_exact(lmax)
+    return specular_filter(spec, lmax)
+
+
+def _band_filter(spec: BRDFSpec, lmax: int, design: str = "rh") -> torch.Tensor:
     """``(lmax+1, C)`` combined filter ``kd Â_l/π + ks f_l`` (zero where unobservable)."""
     f = diffuse_filter(lmax)[:, None] * spec.kd[None, :]
     if spec.model != "lambertian":
-        f = f.abs() + (specular_filter(spec, lmax)[:, None] * spec.specular_scale[None, :]).abs()
+        f = f.abs() + (_specular_filter(spec, lmax, design)[:, None]
+                       * spec.specular_scale[None, :]).abs()
     return f
 
 
 def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, scale_fixing,
-                        chunk, view, good, lmax_internal) -> SHFit:
+                        chunk, view, good, lmax_internal, design="exact") -> SHFit:
     """Fit by method "bayes" of :func:`fit_lighting` (issue 12; ``docs/fitting.md#uncertainty``)."""
     auto = lmax == "auto"
     lrep = 0 if auto else int(lmax)
@@ -408,7 +543,13 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     limit = max(SH_TABLE_ENTRIES, int(SH_TABLE_MEMORY * available_bytes(n.device)) // 8)
     shared = _shared_design(spec)
     per_table = 0 if shared else limit // (1 + (r is not None))
-    tables = (SHRows(n, per_table), None if r is None else SHRows(r, per_table))
+    exact = design_used(spec, design) == "exact"
+    cap = max(lrep, min(INTERNAL_LMAX_CAP, _sample_cap(nsamp, spec, design)))
+    # the exact rows are integrated once, at the largest bandwidth the fit may try (the cap;
+    # smaller ones are prefixes): glossy fits usually go there, and a second pass costs more
+    tables = (SHRows(n, per_table), None if r is None or exact else SHRows(r, per_table),
+              ExactRows(spec.brdf, n, r, lmax_min=cap if lmax_internal is None
+                        else max(int(lmax_internal), lrep)) if exact else None)
 
     def in_scan_order(sol):
         if inv is not None:
@@ -418,22 +559,21 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
 
     def solve_to(cands):
         band = band_of_index(cands[-1]).to(n.device)
-        design, cscale = lighting_design(spec, n, r, cands[-1], tables, limit)
-        return in_scan_order(solve_bayes(design, b, w, band, noise_known=noise_known,
+        design_f, cscale = lighting_design(spec, n, r, cands[-1], tables, limit, design)
+        return in_scan_order(solve_bayes(design_f, b, w, band, noise_known=noise_known,
                                          noise_source=src, chunk=chunk, channel_scale=cscale,
                                          split=split, bandwidths=cands)), cscale
 
     def scan(x):
         return x if inv is None else x[inv]
 
-    cap = max(lrep, min(INTERNAL_LMAX_CAP, math.isqrt(max(nsamp, 1)) // 2 - 1))
     first = None  # (solution, its adequacy): reused below when nothing was solved after it
     if lmax_internal is not None:
         full, cscale = solve_to([max(int(lmax_internal), lrep)])
     else:
         # the filter's bandwidth first; larger ones (evidence-chosen) only when its residual
         # is not white noise — the data then carry more than a slope-2 spectrum would
-        l0 = cap if auto else max(internal_lmax(spec, lrep, nsamp), lrep)
+        l0 = cap if auto else max(internal_lmax(spec, lrep, nsamp, design), lrep)
         full, cscale = solve_to([l0])
         first = (full, model_adequacy(full, b_scan, scan(w), noise_known=noise_known,
                                       view=view))
@@ -442,7 +582,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     lint = int(full.band.max())
     cands = [lint]
     band = band_of_index(lint).to(n.device)
-    design, _ = lighting_design(spec, n, r, lint, tables, limit)
+    design_f, _ = lighting_design(spec, n, r, lint, tables, limit, design)
     if noise_model is not None and getattr(noise_model, "is_known", False):
         pred = b_scan - full.bayes.residual
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
@@ -450,10 +590,10 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         w, src = noise_weights(b_scan, var2)
         w = w if perm is None else w[perm]
         noise_known = True
-        full = in_scan_order(solve_bayes(design, b, w, band, noise_known=True,
+        full = in_scan_order(solve_bayes(design_f, b, w, band, noise_known=True,
                                          noise_source=src + " (IRLS at the fit)", chunk=chunk,
                                          channel_scale=cscale, split=split, bandwidths=cands))
-    filt = _band_filter(spec, lint)
+    filt = _band_filter(spec, lint, design)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)
     weak = weak_prior_variance(full)

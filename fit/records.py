@@ -49,6 +49,8 @@ def lighting_json(fit: SHFit) -> dict:
     out["regularization"] = fit.regularization
     out["noise_level"] = fin(float(fit.noise_level))
     out["prediction"] = fit.prediction
+    if getattr(fit, "design", None):  # issue 12: which specular forward model was fitted
+        out["design"] = fit.design
     if getattr(fit, "method", "") == "bayes":  # issue 12: posterior, adequacy, suggested lmax
         out["ill_conditioning_definition"] = fit.regularization["definition"]
         out.update(fit.uncertainty_json())

@@ -6,8 +6,8 @@ The BRDF is ``[material]`` (``--brdf`` overrides its model); the lighting is rec
 
 from __future__ import annotations
 
-from ..brdf_models import BRDFSpec, render_sh
-from ..inverse_lighting import fit_lighting
+from ..brdf_models import BRDFSpec
+from ..inverse_lighting import fit_lighting, predict_radiance
 from ..records import conditioning_json, lighting_json
 from ..result import FitResult
 from .base import (
@@ -37,7 +37,7 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
                        scale_fixing="" if given else (
                            "no [material]: Lambertian with the albedo fixed to 1 per channel, "
                            "so the coefficients are albedo x lighting"))
-    pred = render_sh(spec, samples.normal, samples.reflected, fit.coefficients)
+    pred = predict_radiance(fit, samples.normal, samples.reflected)
     params = spec.parameters()
     rec = {"lighting": lighting_json(fit),
            "brdf": {"model": spec.model, "parameters": params,
@@ -52,7 +52,8 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
     summ = [f"Problem 1 (inverse lighting, {spec.model} BRDF {how}): lighting to l = "
             f"{opts.lmax}; first ill-conditioned band {_band(fit.ill_conditioned_from_l)} "
             f"measured, {_band(p.get('first_ill_band'))} predicted by Ramamoorthi & Hanrahan "
-            f"(2001) at the noise level ε = {fit.noise_level:.3g}."]
+            f"(2001) at the noise level ε = {fit.noise_level:.3g}.",
+            f"Forward model of the specular part: {fit.design['text']}."]
     est = [lighting_estimate(fit)] + material_estimates(spec, params)
     return FitResult("lighting", est, pred, rec, summary=summ, lighting=fit)
 

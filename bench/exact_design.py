@@ -1,0 +1,58 @@
+"""Cost of problem 1's exact specular design (``brdfcap.fit.exact_design``, issue 12).
+
+Times the quadrature rows ``D_{p,lm}`` for 6 orthographic views of a sphere at ``--px`` pixels
+square, Phong s = 64 and Beckmann σ = 0.2, at internal bandwidths ``--lmax``, by
+:func:`~brdfcap.fit.exact_design.exact_rows` (``--method auto``: the canonical table rotated per
+sample above 386 samples, else the per-sample rule). ``--method direct`` times the per-sample
+rule on a strided subset of ``--subset`` samples and extrapolates linearly in ``N`` (each
+sample has its own rule, so its cost is exactly proportional). Example::
+
+    python bench/exact_design.py --px 32,256 --lmax 16,24 --threads 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from brdfcap.fit.brdf.base import make_brdf
+from brdfcap.fit.exact_design import exact_rows, lobe_bandwidth, lobe_extent, node_counts
+
+from brdfcap.truth_matrix import sphere_views
+
+MODELS = {"phong s=64": ("phong", {"ks": [1.0], "s": 64.0}),
+          "beckmann sigma=0.2": ("beckmann", {"f0": [1.0], "sigma": 0.2})}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--px", default="32,256")
+    ap.add_argument("--lmax", default="16,24")
+    ap.add_argument("--method", default="auto", choices=("auto", "direct"))
+    ap.add_argument("--subset", type=int, default=600, help="samples timed (direct)")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    print("| BRDF | views | N | L | method | nodes per rule | seconds |")
+    print("|---|---|---|---|---|---|---|")
+    for px in [int(v) for v in args.px.split(",")]:
+        n, wo, _ = sphere_views(6, px)
+        r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
+        step = max(1, n.shape[0] // args.subset) if args.method == "direct" else 1
+        ns, rs = n[::step], r[::step]
+        for name, (model, params) in MODELS.items():
+            m = make_brdf(model, kd=[0.0], **params)
+            for lmax in [int(v) for v in args.lmax.split(",")]:
+                nt, nphi = node_counts(lmax, lobe_bandwidth(m), lobe_extent(m))
+                t0 = time.perf_counter()
+                exact_rows(m, ns, rs, lmax, method=args.method)
+                dt = (time.perf_counter() - t0) * n.shape[0] / ns.shape[0]
+                print(f"| {name} | 6 × {px}² | {n.shape[0]} | {lmax} | {args.method} "
+                      f"| {2 * nt * nphi} | {dt:.1f}{' (extrapolated)' if step > 1 else ''} |",
+                      flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

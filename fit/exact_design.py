@@ -1,0 +1,473 @@
+r"""Exact specular design of the lighting problem: rows by quadrature of the point evaluation.
+
+The reflected radiance of any BRDF is linear in the incident lighting: with
+``L(ω) = Σ_lm L_lm Y_lm(ω)``, sample ``p`` (normal ``n_p``, view ``ωo_p``) sees
+
+.. math:: B_p = \sum_{lm} L_{lm} \int_{S^2} Y_{lm}(\omega)\, f(n_p, \omega, \omega_{o,p})
+          \max(n_p\cdot\omega, 0)\, d\omega = \sum_{lm} D_{p,lm} L_{lm}
+
+(the reflection equation, R&H 2001 eq. 1 / seed eq. 1, before any approximation). Ramamoorthi
+& Hanrahan's signal-processing form replaces ``D_{p,lm}`` by ``Λ_l ρ̂_l Y_lm(r_p)``
+(SIGGRAPH 2001 eqs. 18-20 for Phong, seed eqs. 4-6; the microfacet lobe is taken radially
+symmetric about ``r`` with ``Λ_l ρ̂_l ≈ exp(−(σl)²)``); that is exact only for a lobe radially
+symmetric about ``r`` that the horizon never cuts. :class:`ExactRows` computes ``D_{p,lm}`` of
+the specular part itself by numerical quadrature of the registered model's
+:meth:`~brdfcap.fit.brdf.base.BRDFModel.eval_specular_cos` (Phong with its horizon clamp;
+Cook–Torrance with Fresnel, Smith ``G`` and ``1/(4 cos θi cos θo)``).
+
+The rule (ours; the renderers of :mod:`brdfcap.capture.reference` and
+:mod:`brdfcap.truth_matrix` sum probe texels instead) is a lobe-adapted product Gauss rule in a
+frame about the mirror direction ``r_p``, one per sample:
+
+* ``θ`` (angle from ``r``) on ``[0, θ_p]``, ``θ_p = min(θ_lobe, π/2 + γ_p)`` with ``γ_p`` the
+  exitance angle (``cos γ = n·r = n·ωo``; beyond ``π/2 + γ`` the whole ring lies below the
+  horizon) and ``θ_lobe`` where the lobe at normal exitance has fallen below
+  :data:`LOBE_TOL` of its peak (times :data:`LOBE_MARGIN`), Gauss–Legendre with the
+  ``sin θ`` Jacobian, in two panels split at ``π/2 − γ_p``, where rings start to cross the
+  horizon (otherwise at the middle);
+* ``φ`` about ``r``: on a ring wholly above the horizon the trapezoid rule (exact for
+  trigonometric polynomials below its node count); on a ring the horizon cuts, Gauss–Legendre
+  on the arc above it, ``cos(φ − φ_n) > −cot θ cot γ`` — the integrand's jump at the horizon
+  (Phong's clamp) is an end point of the rule, never inside it.
+
+Node counts follow the bandwidth of the integrand, ``L_t = L + L_b`` (``L`` the lighting
+bandwidth, ``L_b`` one above the last band where the model's normal-exitance filter
+:meth:`~brdfcap.fit.brdf.base.BRDFModel.sh_filter_exact` exceeds :data:`FILTER_TOL` of its
+DC): per θ panel ``⌈L_t Δθ/4⌉ + 8`` nodes (a band-``k`` function on an interval of length Δ
+needs Chebyshev degree ``~kΔ/2``, Gauss–Legendre integrates twice its node count), and
+``⌈L_t sin(min(θ_p, π/2))⌉ + 12`` in ``φ``, times ``refine``. Convergence (measured,
+``tests/fit/test_exact_design.py``): doubling every node count changes the rows by less than
+:data:`CONVERGENCE_TOL` of the largest row entry. Samples are processed in chunks
+(:data:`CHUNK_BYTES` of SH values at a time).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections import OrderedDict
+
+import numpy as np
+import torch
+from scipy.special import roots_legendre
+
+from .brdf.base import BRDFModel, orthonormal_basis
+from .rotation import wigner_d_real_blocks
+from .sh import real_sh
+
+__all__ = ["ExactRows", "exact_rows", "horizon_clamped", "exact_rows_direct",
+           "exact_rows_rotated", "TABLE_ANGLES", "lobe_extent", "lobe_bandwidth", "node_counts",
+           "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
+           "CONVERGENCE_TOL", "CHUNK_BYTES"]
+
+#: The lighting problem's specular designs: ``exact`` (this module) and ``rh`` (R&H 2001's form).
+DESIGNS = ("exact", "rh")
+#: The lobe's extent: where the transfer at normal exitance falls below this fraction of its peak.
+LOBE_TOL = 1e-9
+#: Safety factor on the lobe's extent (off-normal exitance widens and shifts the lobe).
+LOBE_MARGIN = 1.3
+#: The lobe's bandwidth: bands above the last whose normal-exitance filter exceeds this fraction of
+#: the DC are not counted (the rule resolves the horizon's kink by its end points, not by nodes).
+FILTER_TOL = 1e-4
+#: Stated convergence: doubling the nodes changes no row entry by more than this fraction of the
+#: largest entry (checked by the tests).
+CONVERGENCE_TOL = 1e-4
+#: Exitance angles of the canonical table of the rotated evaluation (uniform on [0, γmax]).
+TABLE_ANGLES = 193
+#: The rotated evaluation is used when there are more samples than this many times the table.
+ROTATE_ABOVE = 2
+#: SH values (float64) evaluated at once per chunk of samples.
+CHUNK_BYTES = 1 << 27
+#: Designs kept between fits (the matrix and repeated fits reuse them), by content key.
+_CACHE: OrderedDict = OrderedDict()
+#: Largest table (bytes) kept between fits: larger ones (real captures) are freed with the fit.
+CACHE_BYTES = 1 << 28
+_CACHE_SIZE = 2
+
+
+def exact_design_applies(model: BRDFModel) -> bool:
+    """Whether the exact design differs from R&H's form: a finite specular lobe (not Dirac)."""
+    return model.has_specular and not model.delta and model.name != "lambertian"
+
+
+def _transfer_normal(model: BRDFModel, th: torch.Tensor, affine: bool) -> torch.Tensor:
+    """Specular transfer at normal exitance (``n = ωo = z``), ``ωi`` at angles ``th``, ``(T,)``.
+
+    The scale-linear part (:meth:`specular_affine` ``a``, else the channel mean) per unit scale.
+    """
+    wi = torch.stack([torch.sin(th), torch.zeros_like(th), torch.cos(th)], -1)
+    n = torch.zeros_like(wi)
+    n[:, 2] = 1.0
+    aff = model.specular_affine(n, wi, n) if affine else None
+    if aff is not None:
+        return aff[0] + aff[1]
+    scale = model.specular_scale.to(th).clamp_min(1e-300)
+    return (model.eval_specular_cos(n, wi, n) / scale).mean(-1)
+
+
+def lobe_extent(model: BRDFModel) -> float:
+    """Angular radius ``θ_lobe`` of the specular lobe about ``r`` (module doc), radians, ≤ π."""
+    th = torch.linspace(0.0, math.pi / 2, 4097, dtype=torch.float64)
+    g = _transfer_normal(model, th, True).abs()
+    peak = float(g.max())
+    if not peak > 0:
+        return math.pi
+    above = torch.nonzero(g > LOBE_TOL * peak).flatten()
+    last = float(th[int(above.max())]) if above.numel() else float(th[1])
+    if last >= th[-2]:  # the lobe reaches the horizon at normal exitance: integrate everything
+        return math.pi
+    return min(math.pi, LOBE_MARGIN * (last + float(th[1])))
+
+
+def _lobe_extent_full(model: BRDFModel) -> float:
+    """``θ_lobe`` about ``r`` of an unclamped lobe, scanned over the whole sphere (radians)."""
+    th = torch.linspace(0.0, math.pi, 8193, dtype=torch.float64)
+    wi = torch.stack([torch.sin(th), torch.zeros_like(th), torch.cos(th)], -1)
+    n = torch.zeros_like(wi)
+    n[:, 2] = 1.0
+    g = (model.eval_specular_cos(n, wi, n) / model.specular_scale.to(th).clamp_min(1e-300)) \
+        .abs().mean(-1)
+    above = torch.nonzero(g > LOBE_TOL * g.max().clamp_min(1e-300)).flatten()
+    if not above.numel() or float(th[int(above.max())]) >= th[-2]:
+        return math.pi
+    return min(math.pi, LOBE_MARGIN * float(th[int(above.max()) + 1]))
+
+
+def lobe_bandwidth(model: BRDFModel, cap: int = 400) -> int:
+    """``L_b``: one above the last band where ``|sh_filter_exact|`` ≥ :data:`FILTER_TOL` × DC."""
+    f = model.sh_filter_exact(cap).abs()
+    big = torch.nonzero(f >= FILTER_TOL * f[0].clamp_min(1e-300)).flatten()
+    return min(cap, int(big.max()) + 1) if big.numel() else 0
+
+
+def node_counts(lmax: int, lobe_band: int, theta_max: float, refine: float = 1.0
+                ) -> tuple[int, int]:
+    """``(nodes per θ panel, nodes in φ)`` for bandwidth ``lmax + lobe_band`` (module doc)."""
+    lt = lmax + lobe_band
+    nt = int(math.ceil(refine * (math.ceil(lt * theta_max / 4.0) + 8)))
+    nphi = int(math.ceil(refine * (math.ceil(lt * math.sin(min(theta_max, math.pi / 2))) + 12)))
+    return nt, nphi
+
+
+def _gauss(n: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    x, w = roots_legendre(n)
+    return (torch.as_tensor(np.asarray(x), dtype=dtype, device=device),
+            torch.as_tensor(np.asarray(w), dtype=dtype, device=device))
+
+
+def horizon_clamped(model: BRDFModel) -> bool:
+    """Whether the model's transfer is 0 for light below the horizon (``n·ωi ≤ 0``).
+
+    Every built-in model is; a model that is not (a test's unclamped lobe) gets whole rings, no
+    horizon arcs. Probed at a grazing view (80°) on 256 directions just below the horizon.
+    """
+    g = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(256, 3, dtype=torch.float64, generator=g),
+                                      dim=-1)
+    d[:, 2] = -(0.001 + 0.3 * d[:, 2].abs())
+    d = torch.nn.functional.normalize(d, dim=-1)
+    d[:64] = torch.nn.functional.normalize(
+        torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64) + 0.2 * d[:64]
+        * torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)
+        + torch.tensor([0.0, 0.0, -0.01], dtype=torch.float64), dim=-1)
+    n = torch.zeros_like(d)
+    n[:, 2] = 1.0
+    th = math.radians(80.0)
+    wo = torch.tensor([math.sin(th), 0.0, math.cos(th)], dtype=torch.float64).expand_as(d)
+    return not bool((model.eval_specular_cos(n, d, wo) != 0).any())
+
+
+def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int,
+           clip: bool = True):
+    """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc).
+
+    ``clip=False`` (a model not clamped at the horizon): whole rings to ``θ_lobe``.
+    """
+    dt, dev = normal.dtype, normal.device
+    cg = (normal * r).sum(-1).clamp(-1.0, 1.0)  # cos γ
+    gam = torch.arccos(cg)
+    t, b = orthonormal_basis(r)
+    phin = torch.atan2((normal * b).sum(-1), (normal * t).sum(-1))  # azimuth of n about r
+    hi = (math.pi / 2 + gam).clamp(max=theta_lobe) if clip else torch.full_like(gam, theta_lobe)
+    split = math.pi / 2 - gam if clip else torch.full_like(gam, -1.0)
+    mid = torch.where((split > 0) & (split < hi), split, 0.5 * hi)
+    x, w = _gauss(nt, dt, dev)
+    u = 0.5 * (x + 1.0)
+    th = torch.cat([mid[:, None] * u, mid[:, None] + (hi - mid)[:, None] * u], 1)  # (P, 2nt)
+    wt = torch.cat([0.5 * mid[:, None] * w, 0.5 * (hi - mid)[:, None] * w], 1) * torch.sin(th)
+    st, ct = torch.sin(th), torch.cos(th)
+    # horizon: cosθ cosγ + sinθ sinγ cos(φ − φn) > 0  <=>  cos(φ − φn) > c
+    sg = torch.sin(gam)[:, None]
+    c = -(ct * cg[:, None]) / (st * sg).clamp_min(1e-300)
+    c = torch.where(st * sg > 1e-300, c, torch.where(ct * cg[:, None] > 0, -2.0, 2.0))
+    if not clip:
+        c = torch.full_like(c, -2.0)
+    full = c <= -1.0
+    alpha = torch.arccos(c.clamp(-1.0, 1.0))  # half-width of the lit arc (0 when none)
+    xp, wp = _gauss(nphi, dt, dev)
+    k = torch.arange(nphi, dtype=dt, device=dev)
+    ph_full = phin[:, None, None] + 2.0 * math.pi * (k + 0.5) / nphi - math.pi  # (P, 1, nphi)
+    ph_arc = phin[:, None, None] + alpha[..., None] * xp
+    ph = torch.where(full[..., None], ph_full, ph_arc)  # (P, 2nt, nphi)
+    wph = torch.where(full[..., None], torch.full_like(ph, 2.0 * math.pi / nphi),
+                      alpha[..., None] * wp)
+    d = (ct[..., None, None] * r[:, None, None, :]
+         + (st[..., None] * torch.cos(ph))[..., None] * t[:, None, None, :]
+         + (st[..., None] * torch.sin(ph))[..., None] * b[:, None, None, :])
+    p = normal.shape[0]
+    return d.reshape(p, -1, 3), (wt[..., None] * wph).reshape(p, -1)
+
+
+def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
+               refine: float = 1.0, method: str = "auto"
+               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Return the specular rows ``D_{p,lm}`` (module doc), direct or rotated.
+
+    :func:`exact_rows_direct` or, for many samples, :func:`exact_rows_rotated` (``method``:
+    ``"auto"``, ``"direct"``, ``"rotated"``). ``"auto"`` rotates when there are more than
+    :data:`ROTATE_ABOVE` × :data:`TABLE_ANGLES` samples. Arguments and returns as
+    :func:`exact_rows_direct`.
+    """
+    if method not in ("auto", "direct", "rotated"):
+        raise ValueError(f"unknown method {method!r}; valid: auto, direct, rotated")
+    if method == "rotated" or (method == "auto"
+                               and normal.shape[0] > ROTATE_ABOVE * TABLE_ANGLES):
+        return exact_rows_rotated(model, normal, reflected, lmax, refine)
+    return exact_rows_direct(model, normal, reflected, lmax, refine)
+
+
+def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
+                      lmax: int, refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES
+                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    r"""Specular rows ``D_{p,lm}`` by the per-sample quadrature (module doc), no diffuse part.
+
+    Parameters
+    ----------
+    model : BRDFModel
+        Registered model with a finite specular lobe.
+    normal, reflected : torch.Tensor
+        ``(N, 3)`` unit normals and reflected view directions ``r = 2(n·ωo)n − ωo`` (world
+        frame; ``ωo = 2(n·r)n − r`` is recovered from them).
+    lmax : int
+        Lighting bandwidth.
+    refine : float
+        Multiplies every node count (the convergence check uses 2).
+
+    Returns
+    -------
+    tuple
+        ``(a, q)``: ``(N, K)`` rows of the part linear in the specular scale, per unit scale
+        (:meth:`~brdfcap.fit.brdf.base.BRDFModel.specular_affine` ``a``), and the rows of its
+        scale-free offset ``q`` (``None`` when ``q ≡ 0``, e.g. Phong, Fresnel "none"). A model
+        whose transfer is not affine in one scale (exact Fresnel) gives ``(N, C, K)`` rows of
+        the full per-channel transfer as ``a`` (scale included) and ``q = None``.
+    """
+    normal = normal.to(torch.float64)
+    r = reflected.to(torch.float64)
+    wo = 2.0 * (normal * r).sum(-1, keepdim=True) * normal - r
+    th_lobe = lobe_extent(model)
+    clip = horizon_clamped(model)
+    if not clip:
+        th_lobe = _lobe_extent_full(model)
+    nt, nphi = node_counts(lmax, lobe_bandwidth(model), th_lobe, refine)
+    m = 2 * nt * nphi
+    k = (lmax + 1) ** 2
+    step = max(1, chunk_bytes // (8 * m * max(k, 8)))
+    n_all = normal.shape[0]
+    probe = model.specular_affine(normal[:1], normal[:1], wo[:1])
+    affine = probe is not None
+    rows_a = normal.new_zeros((n_all, k) if affine else (n_all, model.channels, k))
+    rows_q = normal.new_zeros((n_all, k)) if affine else None
+    any_q = False
+    for s in range(0, n_all, step):
+        e = min(s + step, n_all)
+        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip)
+        p = e - s
+        nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
+        ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
+        dd = d.reshape(-1, 3)
+        y = real_sh(dd, lmax).reshape(p, m, k)
+        if affine:
+            a, q = model.specular_affine(nn, dd, ww)
+            rows_a[s:e] = torch.einsum("pm,pmk->pk", w * a.reshape(p, m), y)
+            if bool((q != 0).any()):
+                any_q = True
+                rows_q[s:e] = torch.einsum("pm,pmk->pk", w * q.reshape(p, m), y)
+        else:
+            g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
+            rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
+    return rows_a, (rows_q if any_q else None)
+
+
+def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
+                       lmax: int, refine: float = 1.0, angles: int = TABLE_ANGLES,
+                       chunk: int = 16384) -> tuple[torch.Tensor, torch.Tensor | None]:
+    r"""Return the rows of :func:`exact_rows_direct` by rotating a canonical table.
+
+    An isotropic BRDF's transfer depends on the sample only through its frame and the exitance
+    angle ``γ``: in the local frame ``n = z``, ``ωo = (sin γ, 0, cos γ)`` its coefficients
+    ``c_lm(γ)`` are the direct rows of that canonical sample, tabulated at ``angles`` uniform
+    ``γ`` on ``[0, max γ_p]`` and interpolated per sample (4-point Lagrange). With ``R_p`` the
+    sample's local-to-world rotation (columns: the tangent toward ``ωo``, ``n × t``, ``n``),
+    ``Y_l(R ω') = D^l(R) Y_l(ω')`` (:mod:`brdfcap.fit.rotation`) gives
+    ``D_{p,l·} = D^l(R_p) c_l(γ_p)``, applied as ZYZ Euler rotations ``Z(a) D(M) Z(b) D(M)ᵀ
+    Z(c)`` with one fixed ``D(M)`` (``M = Rx(−90°)``, Ivanic & Ruedenberg 1996 for its blocks):
+    cost ``angles ×`` the direct rule plus ``~(8/3) L³`` flops per sample. Anisotropic models
+    are not supported (none is registered).
+    """
+    normal = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
+    r = reflected.to(torch.float64)
+    cg = (normal * r).sum(-1).clamp(-1.0, 1.0)
+    wo = 2.0 * cg[:, None] * normal - r
+    gam = torch.arccos(cg.clamp(0.0, 1.0))
+    gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
+    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64)
+    z = torch.zeros_like(grid)
+    cn = torch.stack([z, z, torch.ones_like(grid)], -1)
+    cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
+    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine)  # (G, K) or (G, C, K)
+    # 4-point Lagrange weights on the uniform grid
+    h = gmax / (angles - 1)
+    u = gam / h
+    i0 = (u.floor().long() - 1).clamp(0, angles - 4)
+    t = u - i0.to(u.dtype)  # position in node units from node i0, in [0, 3]
+    nodes = torch.arange(4, dtype=torch.float64)
+    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64)
+    for j in range(4):
+        for k in range(4):
+            if k != j:
+                wts[:, j] = wts[:, j] * (t - nodes[k]) / (nodes[j] - nodes[k])
+    # local frames: t along the tangential part of ωo (any tangent at γ = 0)
+    tang = wo - cg[:, None] * normal
+    fallback, _ = orthonormal_basis(normal)
+    tn = tang.norm(dim=-1, keepdim=True)
+    tang = torch.where(tn > 1e-9, tang / tn.clamp_min(1e-300), fallback)
+    rot = torch.stack([tang, torch.linalg.cross(normal, tang), normal], -1)  # columns
+    k = (lmax + 1) ** 2
+    # ZYZ Euler angles of each frame, R = Rz(a) Ry(b) Rz(c); Ry(b) = M Rz(b) Mᵀ with
+    # M = Rx(−90°) (takes z to y), so D(R) = Z(a) D(M) Z(b) D(M)ᵀ Z(c): z-rotations mix the
+    # (m, −m) pairs, D(M) is one fixed block per band
+    b_ang = torch.arccos(normal[:, 2].clamp(-1.0, 1.0))
+    a_ang = torch.atan2(normal[:, 1], normal[:, 0])
+    q = _rot_z(-b_ang, 1) @ _rot_z(-a_ang, 2) @ rot
+    c_ang = torch.atan2(q[:, 1, 0], q[:, 0, 0])
+    m_fixed = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
+                           dtype=torch.float64)
+    jb = wigner_d_real_blocks(m_fixed, lmax)
+
+    def rotate(table):
+        out = normal.new_zeros((normal.shape[0],) + table.shape[1:])
+        for s in range(0, normal.shape[0], chunk):
+            e = min(s + chunk, normal.shape[0])
+            idx = i0[s:e, None] + torch.arange(4)
+            c = (table[idx] * wts[s:e].reshape(e - s, 4, *([1] * (table.ndim - 1)))).sum(1)
+            for l in range(lmax + 1):
+                sl = slice(l * l, (l + 1) ** 2)
+                v = _z_band(c[..., sl], c_ang[s:e], l)
+                v = v @ jb[l]  # D(M)ᵀ v, rows as vectors
+                v = _z_band(v, b_ang[s:e], l)
+                v = v @ jb[l].T
+                out[s:e, ..., sl] = _z_band(v, a_ang[s:e], l)
+        return out
+
+    assert ta.shape[-1] == k
+    return rotate(ta), (None if tq is None else rotate(tq))
+
+
+def _rot_z(ang: torch.Tensor, axis: int) -> torch.Tensor:
+    """``(P, 3, 3)`` rotations by ``ang`` about z (``axis = 2``) or y (``axis = 1``)."""
+    c, s = torch.cos(ang), torch.sin(ang)
+    o, z = torch.ones_like(ang), torch.zeros_like(ang)
+    if axis == 2:
+        rows = [[c, -s, z], [s, c, z], [z, z, o]]
+    else:
+        rows = [[c, z, s], [z, o, z], [-s, z, c]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def _z_band(v: torch.Tensor, ang: torch.Tensor, l: int) -> torch.Tensor:
+    """Band-``l`` coefficients ``(P, ..., 2l+1)`` of ``f(Rz(ang)ᵀ ω)`` (real SH, index ``l+m``).
+
+    ``Y_lm ∝ cos mφ``, ``Y_l,−m ∝ sin mφ`` (docs/conventions.md), so ``c_m → cos(mα) c_m −
+    sin(mα) c_−m`` and ``c_−m → sin(mα) c_m + cos(mα) c_−m``.
+    """
+    if l == 0:
+        return v
+    m = torch.arange(1, l + 1, dtype=v.dtype, device=v.device)
+    shape = (ang.shape[0],) + (1,) * (v.ndim - 2) + (l,)
+    cs = torch.cos(ang[:, None] * m).reshape(shape)
+    sn = torch.sin(ang[:, None] * m).reshape(shape)
+    pos, neg = v[..., l + 1:], v[..., :l].flip(-1)  # c_m and c_−m for m = 1..l
+    out = v.clone()
+    out[..., l + 1:] = cs * pos - sn * neg
+    out[..., :l] = (sn * pos + cs * neg).flip(-1)
+    return out
+
+
+def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:
+    h = hashlib.sha1()
+    h.update(repr(model.to_json()).encode())
+    h.update(repr(refine).encode())
+    for x in (normal, r):
+        h.update(x.detach().to(torch.float64).cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+class ExactRows:
+    """Exact specular rows of one sample set, computed once at the largest bandwidth asked.
+
+    Call ``rows(s, e, lmax)`` for rows ``s:e`` of the scale-linear part ``a`` (``(e−s, K)``, or
+    ``(e−s, C, K)`` for a non-affine model); :meth:`offset` gives those of ``q`` (or ``None``).
+    The columns of bands ``≤ l`` are a prefix of any larger bandwidth's, so one table serves
+    every smaller one; the first table is built at ``lmax_min`` at least. The last
+    :data:`_CACHE_SIZE` tables up to :data:`CACHE_BYTES` are kept by content (BRDF, normals,
+    reflected directions), so repeated fits of the same samples do not integrate again.
+    """
+
+    def __init__(self, model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
+                 refine: float = 1.0, lmax_min: int = 0):
+        self.model, self.normal, self.reflected, self.refine = model, normal, reflected, refine
+        self.lmax_min = lmax_min
+        self.key = _key(model, normal, reflected, refine)
+        self.lmax = -1
+        self.a: torch.Tensor | None = None
+        self.q: torch.Tensor | None = None
+        hit = _CACHE.get(self.key)
+        if hit is not None:
+            self.lmax, self.a, self.q = hit
+
+    def _ensure(self, lmax: int) -> None:
+        if lmax > self.lmax:
+            lmax = max(lmax, self.lmax_min)
+            self.a, self.q = exact_rows(self.model, self.normal, self.reflected, lmax,
+                                        self.refine)
+            self.lmax = lmax
+            size = 8 * (self.a.numel() + (0 if self.q is None else self.q.numel()))
+            if size <= CACHE_BYTES:
+                _CACHE[self.key] = (self.lmax, self.a, self.q)
+                _CACHE.move_to_end(self.key)
+                while len(_CACHE) > _CACHE_SIZE:
+                    _CACHE.popitem(last=False)
+
+    @property
+    def per_channel(self) -> bool:
+        """Whether the rows are ``(N, C, K)`` (a model not affine in one scale)."""
+        n = self.normal[:1].to(torch.float64)
+        r = self.reflected[:1].to(torch.float64)
+        wo = 2.0 * (n * r).sum(-1, keepdim=True) * n - r
+        return self.model.specular_affine(n, n, wo) is None
+
+    def has_offset(self, lmax: int) -> bool:
+        """Whether the transfer has a scale-free part ``q`` (Schlick with its ``(1 − f0) c⁵``)."""
+        self._ensure(lmax)
+        return self.q is not None
+
+    def __call__(self, s: int, e: int, lmax: int) -> torch.Tensor:
+        """Rows ``s:e`` of ``a`` at bandwidth ``lmax``."""
+        self._ensure(lmax)
+        return self.a[s:e, ..., : (lmax + 1) ** 2]
+
+    def offset(self, s: int, e: int, lmax: int) -> torch.Tensor | None:
+        """Rows ``s:e`` of ``q`` at bandwidth ``lmax`` (``None`` when ``q ≡ 0``)."""
+        self._ensure(lmax)
+        return None if self.q is None else self.q[s:e, : (lmax + 1) ** 2]
