@@ -59,6 +59,8 @@ class RunOptions:
     brdf: str | None = None  # BRDF model override (lambertian/phong/microfacet/mirror)
     rule: str = "gcv"  # Tikhonov weight rule (brdfcap.fit.solve)
     brdf_lmax: int = 8  # highest band of SH-domain BRDF filters (problems brdf/both)
+    #: problem 1's forward model of a glossy BRDF: "exact" (quadrature) or "rh" (R&H 2001)
+    design: str = "exact"
 
 
 @dataclass
@@ -137,7 +139,7 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
         raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
                        capture.config.toml_path)
     fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
-                          brdf_lmax=options.brdf_lmax)
+                          brdf_lmax=options.brdf_lmax, design=options.design)
     return solve_problem(options.problem, samples, known_of(capture, options, samples),
                          fit_opts)
 

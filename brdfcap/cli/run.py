@@ -156,6 +156,12 @@ def _batch_echo(line: str) -> None:
               show_default=True, help="How the Tikhonov weight is chosen (docs/fitting.md).")
 @click.option("--brdf-lmax", type=click.IntRange(0, 200), default=8, show_default=True,
               help="Highest band of SH-domain BRDF filters (problems brdf/both).")
+@click.option("--design", type=click.Choice(["exact", "rh"]), default="exact",
+              show_default=True,
+              help="Problem lighting's forward model of a glossy BRDF: exact (quadrature of "
+                   "the BRDF, slower) or rh (Ramamoorthi & Hanrahan 2001's reflection-space "
+                   "filter, fast but approximate: biased for rough or grazing lobes; "
+                   "docs/fitting.md).")
 @click.option("--jobs", "-j", type=click.IntRange(0, 4096), default=1, show_default=True,
               help="Dask workers for a batch: local worker processes (0: one per CPU core), "
                    "or job-queue workers with --cluster (docs/batch.md).")
@@ -193,7 +199,7 @@ def _batch_echo(line: str) -> None:
               "object (key numbers with errors, ill-conditioned bands, warnings, paths).")
 @click.pass_obj
 def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int, device: str,
-            problem: str, brdf: str | None, rule: str, brdf_lmax: int, jobs: int,
+            problem: str, brdf: str | None, rule: str, brdf_lmax: int, design: str, jobs: int,
             scheduler: str | None, cluster: str | None, cluster_config: Path | None,
             connect_timeout: float, allow_outside: bool, force: bool, progress: bool | None,
             bench: bool, profile: bool, export: bool, debug_local: bool, quiet: bool = False,
@@ -229,7 +235,7 @@ def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int, devic
               debug)
     single = len(captures) == 1 and captures[0] == path
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
-                      brdf_lmax=brdf_lmax)
+                      brdf_lmax=brdf_lmax, design=design)
     # every option of this command with its resolved value (defaults included), for config.json
     # (paths made absolute, so that the config.json re-runs from any directory)
     cli = {k: (str(v.resolve()) if isinstance(v, Path) else v)

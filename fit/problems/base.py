@@ -36,13 +36,17 @@ class FitOptions:
 
     ``lmax``: highest band of recovered lighting; ``brdf``: BRDF model overriding
     ``[material].model``; ``rule``: Tikhonov weight rule (:mod:`brdfcap.fit.solve`);
-    ``brdf_lmax``: highest band of SH-domain BRDF filters.
+    ``brdf_lmax``: highest band of SH-domain BRDF filters; ``design``: problem 1's forward
+    model of a glossy BRDF — ``"exact"`` (quadrature of the model's point evaluation,
+    :mod:`brdfcap.fit.exact_design`) or ``"rh"`` (R&H 2001's reflection-space form, faster,
+    approximate; ``docs/fitting.md``).
     """
 
     lmax: int = 2
     brdf: str | None = None
     rule: str = "gcv"
     brdf_lmax: int = 8
+    design: str = "exact"
 
 
 @dataclass(frozen=True)

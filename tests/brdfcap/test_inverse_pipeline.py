@@ -80,6 +80,29 @@ def test_problem_lighting_known_phong(captures, tmp_path):
     assert (tmp_path / "o" / "report.html").read_text().count("measured vs predicted") >= 1
 
 
+def test_design_option_picks_problem_1s_forward_model(captures, tmp_path):
+    """``--design``: the exact quadrature design is the default, ``rh`` R&H's form; both are
+    recorded (options, lighting.design, the summary) and the option enters the config hash.
+    On the same reference-rendered Phong data the exact design fits at least as well.
+    """
+    ex = _run(captures["env"], tmp_path / "ex", "--problem", "lighting", "--lmax", "2")
+    rh = _run(captures["env"], tmp_path / "rh", "--problem", "lighting", "--lmax", "2",
+              "--design", "rh")
+    assert ex["options"]["design"] == "exact" and rh["options"]["design"] == "rh"
+    assert ex["lighting"]["design"]["used"] == "exact"
+    assert rh["lighting"]["design"]["used"] == "rh"
+    assert ex["provenance"]["config_hash"] != rh["provenance"]["config_hash"]
+
+    def err(r):
+        return max(abs(e - t) for re, rt in zip(r["lighting"]["coefficients"], GRACE_RH2001)
+                   for e, t in zip(re, rt))
+
+    assert err(ex) <= err(rh) * 1.05 + 1e-4 * GRACE_RH2001[0][0], (err(ex), err(rh))
+    res = CliRunner().invoke(main, ["run", str(captures["env"]), "--out", str(tmp_path / "x"),
+                                    "--design", "approx"])
+    assert res.exit_code != 0 and "exact" in res.output and "rh" in res.output
+
+
 def test_problem_brdf_directional_phong(captures, tmp_path):
     """Problem 2 with known distant lights: kd, ks, s to 1%."""
     r = _run(captures["dir"], tmp_path / "o", "--problem", "brdf")
