@@ -142,45 +142,62 @@ def test_problem_brdf_isotropic_run_option(captures, tmp_path):
 
 
 def test_problem_decomposition_round_trip():
-    """R&H decomposition as a run problem: data rendered by the decomposition's own forward
-    model (slow SH lighting + two bright sources, microfacet σ = 0.1) give back the slow
-    lighting and the source powers (noise-free, to 1e-6 relative).
+    """R&H decomposition as a run problem on data it did not generate: a Beckmann sphere
+    (σ = 0.1, F = F0 constant, kd 0.5/0.4/0.3) under the Grace SH lighting as a probe plus two
+    bright sources, rendered by the reference renderer (:mod:`brdfcap.capture.reference`,
+    numerical integration to 2e-3, lights in closed form; views within ~11° of the normal,
+    where R&H's decomposition holds). Checks the run problem's wiring (registry, known sources,
+    results and CSV rows with errors) and that it gives back the slow lighting and the source
+    powers to R&H's approximations (measured 1.6% of the DC and 1.2%; asserted 3% and 4%); fitting
+    with the wrong roughness misses the sources, so the comparison can fail.
     """
     from types import SimpleNamespace
 
     import torch
-    from brdfcap.fit.decomposition import microfacet_decomposition
+    from brdfcap.capture.reference import LatLongProbe, render_environment, render_lights
+    from brdfcap.fit.brdf_models import BRDFSpec
+    from brdfcap.fit.envmap import reconstruct_envmap
     from brdfcap.fit.problems import FitOptions, Known, solve_problem
 
+    from brdfcap.testing import unit, views_above
+
     g = torch.Generator().manual_seed(0)
-    n = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64),
-                                      dim=-1)
-    wo = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64)
-                                       + 2 * n, dim=-1)
-    refl = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
+    n = unit(1500, g)
+    wo, refl = views_above(n, g, spread=0.2)
     slow = torch.tensor(GRACE_RH2001, dtype=torch.float64)
     dirs = torch.nn.functional.normalize(torch.tensor([[0.3, 0.2, 1.0], [-0.8, 0.1, 0.3]],
                                                       dtype=torch.float64), dim=-1)
     power = torch.tensor([[2.0, 1.8, 1.5], [0.7, 0.9, 1.1]], dtype=torch.float64)
     kd = torch.tensor([0.5, 0.4, 0.3], dtype=torch.float64)
-    f0 = torch.tensor([0.04, 0.04, 0.04], dtype=torch.float64)
-    b = microfacet_decomposition(n, refl, slow, dirs, power, kd, f0, 0.1).total
+    f0 = torch.tensor([0.9, 0.9, 0.9], dtype=torch.float64)
+    spec = BRDFSpec("beckmann", kd=kd, f0=f0, sigma=0.1, extra={"fresnel": "none"})
+    b = render_environment(spec, n, wo, LatLongProbe(reconstruct_envmap(slow, 48, 96), "cubic"),
+                           rel_tol=2e-3)
+    for j in range(dirs.shape[0]):
+        b = b + render_lights(spec, n, wo, dirs[j].expand_as(n), power[j])
     samples = SimpleNamespace(normal=n, wo=wo, reflected=refl, radiance=b, variance=None)
-    known = Known(source="capture.toml", material={"model": "microfacet", "albedo": kd.tolist(),
-                                                   "f0": f0.tolist(), "sigma": 0.1},
-                  sources=dirs)
-    out = solve_problem("decomposition", samples, known, FitOptions(lmax=2, rule="none"))
+
+    def run(sigma):
+        known = Known(source="capture.toml", sources=dirs,
+                      material={"model": "microfacet", "albedo": kd.tolist(),
+                                "f0": f0.tolist(), "sigma": sigma})
+        return solve_problem("decomposition", samples, known, FitOptions(lmax=2, rule="none"))
+
+    out = run(0.1)
     est = torch.tensor(out.results["lighting"]["coefficients"])
     pw = torch.tensor(out.results["lighting"]["sources"]["power"])
-    assert ((est - slow) / slow[0]).abs().max() < 1e-6
-    assert ((pw - power) / power).abs().max() < 1e-6
+    err_l, err_p = float(((est - slow) / slow[0]).abs().max()), float(((pw - power) / power)
+                                                                        .abs().max())
+    assert err_l < 0.03 and err_p < 0.04, (err_l, err_p)
     share = out.results["decomposition"]["share_of_radiance"]
     assert all(v > 0 for v in share.values())
-    torch.testing.assert_close(out.prediction, b)
+    assert float(((out.prediction - b).abs().mean() / b.abs().mean())) < 0.03
     power_rows = [r for r in out.rows() if r["quantity"] == "source_power"]  # CSV: with stderr
     assert len(power_rows) == 6 and all(r["stderr"] is not None for r in power_rows)
     assert out.results["lighting"]["determined"] and all(all(r) for r in
                                                          out.results["lighting"]["determined"])
+    pw_wrong = torch.tensor(run(0.14).results["lighting"]["sources"]["power"])
+    assert float(((pw_wrong - power) / power).abs().max()) > 0.04
 
 
 def test_problem_decomposition_needs_sources(captures, tmp_path):

@@ -48,7 +48,7 @@ def _lighting_coverage(spec, lmax, reps, seed, hemisphere=False, known_noise=Tru
         bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
         var = torch.full_like(b, sd ** 2) if known_noise else None
         fit = fit_lighting(nrm, bn, lmax, spec, reflected=r, variance=var,
-                           design="rh")  # data from R&H's form (random r)
+                           design="rh")  # exact here: Lambertian, or Phong seen along n
         lam_rel += fit.regularization["lambda_rel"]
         ok = fit.determined
         hits += int((((fit.coefficients - light).abs() <= 1.96 * fit.stderr) & ok).sum())

@@ -10,7 +10,6 @@ from brdfcap.fit.brdf_models import BRDFSpec, microfacet_sh_filter
 from brdfcap.fit.decomposition import (
     fit_decomposed_lighting,
     gaussian_lobe,
-    microfacet_decomposition,
 )
 from brdfcap.fit.envmap import reconstruct_envmap
 from brdfcap.fit.sh import band_of_index, real_sh
@@ -66,22 +65,6 @@ def _scene(seed=1, n_px=2000):
     kd = torch.tensor([0.3, 0.25, 0.2], dtype=torch.float64)
     f0 = torch.tensor([0.9, 0.9, 0.9], dtype=torch.float64)
     return g, n, slow, dirs, power, kd, f0
-
-
-def test_decomposition_design_matches_its_forward_model():
-    """Exact identity (a documented exception, ``docs/simulator.md``): the fit's design matrix
-    and :func:`microfacet_decomposition` are the same linear model, so noise-free data made by
-    the latter are fitted to 1e-6. This checks the solver and the bookkeeping of slow bands and
-    sources, not the physics (see the reference-renderer test below for that).
-    """
-    g, _, slow, dirs, power, kd, f0 = _scene()
-    n, r = unit(4000, g), unit(4000, g)
-    dec = microfacet_decomposition(n, r, slow, dirs, power, kd, f0, sigma=0.1)
-    assert dec.specular_fast.abs().max() > dec.specular_slow.abs().max()  # sources dominate
-    ls, es, sol, rows, ill = fit_decomposed_lighting(n, r, dec.total, dirs, 4, kd, f0, 0.1)
-    assert (ls - slow).abs().max() < 1e-6
-    assert (es - power).abs().max() < 1e-6
-    assert ill is None
 
 
 def test_decomposed_inverse_lighting_on_the_reference_renderer():
