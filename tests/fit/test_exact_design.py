@@ -58,9 +58,12 @@ def test_phong_rows_equal_rh_filter_without_clamp():
     assert float((a - ref).abs().max()) < 1e-8 * float(ref.abs().max())
 
 
-@register_brdf_model
 class _LambertLobe(BRDFModel):
-    """A Lambertian lobe posing as a specular one (test model; unregistered at module end)."""
+    """A Lambertian lobe posing as a specular one (test model).
+
+    Registered only while this module's tests run (not at import: other modules parametrize
+    over the registry at collection time).
+    """
 
     name = "test-lambert-lobe"
     scale_parameter = "kd"
@@ -78,7 +81,8 @@ class _LambertLobe(BRDFModel):
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _unregister():
+def _registered():
+    register_brdf_model(_LambertLobe)
     yield
     unregister_brdf_model(_LambertLobe.name)
 
