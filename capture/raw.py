@@ -44,6 +44,7 @@ import rawpy
 from scipy import ndimage
 
 from brdfcap.core.errors import CaptureError
+from brdfcap.core.jsonsafe import json_safe
 
 from .colour import (
     CHROMATIC_ADAPTATIONS,
@@ -264,13 +265,14 @@ class LinearImage:
     def info(self) -> dict:
         """Return the chain as a JSON-ready ``{str: str | number | list}`` dict.
 
-        Per-channel values stay numbers (``black_level: [512, 512, 512, 512]``, the 3×3
-        ``camera_to_working`` as rows); integral levels are integers.
+        Per-channel values stay numbers (``black_level: [512.0, 512.0, 512.0]``, the 3×3
+        ``camera_to_working`` as rows; :func:`brdfcap.core.jsonsafe.json_safe`); integral
+        scalar levels are integers.
         """
         out = {}
         for k, v in self.chain.items():
             if isinstance(v, (list, tuple, np.ndarray)):
-                out[k] = _plain(v)
+                out[k] = json_safe(v)
             elif v is None:
                 out[k] = "none"
             elif isinstance(v, float) and v.is_integer() and abs(v) < 2**53:
@@ -278,18 +280,6 @@ class LinearImage:
             else:
                 out[k] = v
         return out
-
-
-def _plain(v):
-    """Nested lists of plain numbers (integral floats as ints) or strings, for JSON."""
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return [_plain(x) for x in v]
-    if isinstance(v, (np.integer, int)) and not isinstance(v, bool):
-        return int(v)
-    if isinstance(v, (np.floating, float)):
-        f = float(v)
-        return int(f) if f.is_integer() and abs(f) < 2**53 else f
-    return v if isinstance(v, (str, bool)) or v is None else str(v)
 
 
 def exposure_factor(shutter: float, aperture: float, iso: float) -> float:
