@@ -21,12 +21,14 @@ itself 10% RMS), far above the 1% noise the matrix adds (measured for issue 12, 
 Criteria (issue 12), per cell ``(probe, BRDF, views, lmax)``, pooled over noisy repetitions:
 
 1. no band the fit calls determined is off by more than 10% (relative band norm
-   ``|L̂_l − L_l| / |L_l|``, worst channel);
+   ``|L̂_l − L_l| / |L_l|``, worst channel), and no band it calls *bounded* ("no power above
+   X", ``conditioning.zero_band_bound``) has a true norm above X;
 2. 90–98% of the determined coefficients inside their 95% intervals (``|L̂ − L| ≤ 1.96 σ``);
    judged on the pooled count with its binomial uncertainty (the Wilson 95% interval of the
    coverage must meet [0.90, 0.98]);
 3. the measured ``ill_conditioned_from_l`` within ±1 of the truth-based one: the first band
-   whose relative error exceeds 10% (a band "recovered" inside the 10% interval of criterion 1);
+   whose relative error exceeds 10% (a band "recovered" inside the 10% interval of criterion 1)
+   and that is not a bounded band whose claim holds (its interval is the bound);
    ``None`` (every band up to lmax) counts as ``lmax + 1`` on both sides.
 """
 
@@ -240,11 +242,17 @@ def score(fit, truth: torch.Tensor, lmax: int) -> tuple[float, int, int, int, in
     t = truth[: (lmax + 1) ** 2]
     err = [float(((fit.coefficients[band == l] - t[band == l]).norm(dim=0)
                   / t[band == l].norm(dim=0).clamp_min(1e-300)).max()) for l in range(lmax + 1)]
-    worst = max([err[r["l"]] for r in fit.bands if r["determined"]], default=0.0)
+    # a bounded band claims "norm <= bound" (per channel): its truth-based check is that claim
+    holds = {r["l"]: bool((t[band == r["l"]].norm(dim=0)
+                           <= torch.tensor(r["norm_upper_bound"], dtype=t.dtype)).all())
+             for r in fit.bands if r.get("bounded")}
+    worst = max([err[r["l"]] for r in fit.bands if r["determined"]]
+                + [err[l] for l, ok in holds.items() if not ok], default=0.0)
     det = fit.determined
     inside = ((fit.coefficients - t).abs() <= 1.96 * fit.stderr) & det
     measured = fit.ill_conditioned_from_l
-    truth_l = next((l for l, e in enumerate(err) if e > ERROR_LIMIT), None)
+    truth_l = next((l for l, e in enumerate(err) if e > ERROR_LIMIT and not holds.get(l)),
+                   None)
     return (worst, int(inside.sum()), int(det.sum()),
             lmax + 1 if measured is None else measured, lmax + 1 if truth_l is None else truth_l)
 

@@ -39,8 +39,8 @@ from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "BAYES_DEFINITION", "PRECISION_LIMIT", "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
            "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
-           "weak_prior_variance",
-           "band_statistics_bayes", "model_adequacy", "suggest_lmax",
+           "weak_prior_variance", "ZERO_BAND_LIMIT", "band_data_only_covariance",
+           "zero_band_bound", "band_statistics_bayes", "model_adequacy", "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
 
@@ -190,6 +190,13 @@ ERROR_BOUND_LEVEL = 0.99
 #: (the quantile factor tends to 1) — the old fixed rule "1 s.d. ≤ 5%", which stopped ~3 bands
 #: early where the filter falls slowly (Phong s = 64: measured l* 12, truth 15).
 PRECISION_LIMIT = ERROR_BOUND_LIMIT
+#: A band the data show to be (nearly) empty is *bounded* instead of ill-conditioned when its
+#: norm is below this fraction of the lighting's norm (all reported bands) with probability
+#: :data:`ERROR_BOUND_LEVEL`, from the data alone (:func:`band_data_only_covariance`). An
+#: absolute claim, so tighter than the 10% relative rule: a natural probe's bands up to l ~ 16
+#: carry 1-10% of its norm each (Grace, Uffizi), so a band known to hold less than 1% is
+#: known to be small for a lighting of that kind, not merely "not seen".
+ZERO_BAND_LIMIT = 0.01
 #: χ²/ν above which (and 3 s.d. above 1) the model is said not to explain the data; between,
 #: a small excess only inflates the intervals (σ² = χ²/ν).
 CHI2_INADEQUATE = 1.5
@@ -209,8 +216,13 @@ BAYES_DEFINITION = (
     f"disjoint halves of the samples (alternate views) are fitted and, where they disagree "
     f"beyond their stated errors (chi2 of the difference above its "
     f"{100 * REPRODUCIBILITY_LEVEL:g}% quantile), the band's errors are widened by the "
-    f"disagreement (Birge ratio) before (3) is checked. ill_conditioned_from_l is the first "
-    f"band that is not determined; the analytic prediction of Ramamoorthi & Hanrahan (|filter_l| / "
+    f"disagreement (Birge ratio) before (3) is checked. A band that fails (3) only because it "
+    f"is (nearly) empty is *bounded* (\"determined: no power above X\") when the data alone "
+    f"(the band's own prior removed, the other bands marginalised) put its norm below "
+    f"{100 * ZERO_BAND_LIMIT:g}% of the lighting's norm with probability "
+    f"{ERROR_BOUND_LEVEL:g} and the estimate is consistent with zero; X is that bound. "
+    f"ill_conditioned_from_l is the first band that is neither determined nor bounded; the "
+    f"analytic prediction of Ramamoorthi & Hanrahan (|filter_l| / "
     f"|filter_0| < eps) is shown next to it."
 )
 
@@ -267,6 +279,66 @@ PRIOR_WEAKENING = 10.0
 #: a band the ratio is ~1 (six views of a Lambertian sphere: <= 1.01); one view of a Lambertian
 #: sphere under the reference probes gives 3-4 on bands 0-2 (docs/fitting.md, "One view").
 PRIOR_DOMINATED_RATIO = 2.0
+
+
+def band_data_only_covariance(sol: LinearSolution, sel: torch.Tensor,
+                              c: int) -> torch.Tensor | None:
+    r"""Covariance of one band's coefficients from the data alone, or ``None`` if unbounded.
+
+    The posterior precision is ``G/σ² + Λ_p`` with the diagonal prior precision ``Λ_p``; the
+    marginal precision of band ``l``'s block is its Schur complement, in which the band's own
+    prior enters additively. Removing it, ``(C_ll⁻¹ − Λ_l)⁻¹``, leaves the band's uncertainty
+    with every *other* band still marginalised under its prior (MacKay 1992 eq. 2.13 with the
+    band's ``α → 0``): what the samples say about this band, not what the power law expects.
+    ``None`` where that matrix is not positive definite (the data do not bound the band).
+    """
+    idx = torch.nonzero(sel).flatten()
+    ix = (idx[:, None], idx[None, :])
+    cv = sol.covariance[c][ix]
+    cv = 0.5 * (cv + cv.T)
+    d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
+    cs = cv * d[:, None] * d[None, :]
+    try:
+        prec = torch.cholesky_inverse(torch.linalg.cholesky(cs))
+    except torch.linalg.LinAlgError:
+        return None
+    data = prec - torch.diag(1.0 / sol.bayes.prior_variance[idx, c].clamp_min(1e-300) / d ** 2)
+    data = 0.5 * (data + data.T)
+    try:
+        ch = torch.linalg.cholesky(data)
+    except torch.linalg.LinAlgError:
+        return None
+    if float(torch.diagonal(ch).min()) <= 1e-7 * float(torch.diagonal(ch).max()):
+        return None
+    return torch.cholesky_inverse(ch) / (d[:, None] * d[None, :])
+
+
+def zero_band_bound(sol: LinearSolution, sel: torch.Tensor, inflation: torch.Tensor,
+                    level: float = ERROR_BOUND_LEVEL) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(upper, consistent)``: a data-only bound on a band's norm, per channel.
+
+    ``upper`` ``(C,)`` is ``|x̂_l|`` plus the ``level`` error bound of
+    :func:`band_error_bound` on the band's data-only variances
+    (:func:`band_data_only_covariance`, times ``inflation``), ``inf`` where the data do not
+    bound the band; ``consistent`` ``(C,)`` says the estimate is consistent with zero (its χ²
+    against zero under that covariance at most the ``level`` quantile of χ²(n_l)).
+    """
+    x = sol.coefficients[sel]
+    nch = x.shape[1]
+    upper = torch.full((nch,), math.inf, dtype=torch.float64)
+    consistent = torch.zeros(nch, dtype=torch.bool)
+    lim = _chi2_quantile(level, int(sel.sum()))
+    for c in range(nch):
+        cv = band_data_only_covariance(sol, sel, c)
+        if cv is None:
+            continue
+        cv = cv * float(inflation[c])
+        v = torch.diagonal(cv).clamp_min(0.0)
+        norm = x[:, c].norm()
+        upper[c] = norm + float(band_error_bound(v[:, None], torch.ones(1, dtype=v.dtype))[0])
+        z2 = float(x[:, c] @ torch.linalg.lstsq(cv, x[:, c:c + 1]).solution[:, 0])
+        consistent[c] = z2 <= lim
+    return upper, consistent
 
 
 def weak_prior_variance(sol: LinearSolution, kappa: float = PRIOR_WEAKENING) -> torch.Tensor:
@@ -339,7 +411,11 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
         ``prior_sensitivity`` (worst channel: summed error variance under the
         :data:`PRIOR_WEAKENING`-times weaker prior over that under the fitted one; ``None``
         without ``weak``), ``prior_dominated`` (``prior_sensitivity`` above
-        :data:`PRIOR_DOMINATED_RATIO`), ``determined``,
+        :data:`PRIOR_DOMINATED_RATIO`), ``determined``, ``bounded`` (a (nearly) empty band whose
+        norm the data alone put below :data:`ZERO_BAND_LIMIT` of the lighting's norm:
+        :func:`zero_band_bound`; not ill-conditioned), ``norm_upper_bound`` (per channel: the
+        data-only bound on the band's norm) and ``norm_upper_bound_rel`` (that bound over the
+        lighting's norm, worst channel; both ``None`` for determined or unobservable bands),
         ``ill_conditioned``, ``reason``, and the design statistics of :func:`band_statistics`
         (``singular_max``, ``singular_min``, ``condition``, ``determined_fraction``, ``median_snr``,
         ``resolution``, ``median_rel_stderr`` = relative precision).
@@ -355,6 +431,7 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
         f = filt.to(torch.float64).reshape(filt.shape[0], -1)[: lmax + 1].abs()
         f = f.expand(-1, nch) if f.shape[1] == 1 else f
     rows, first = [], None
+    scale = x.norm(dim=0)  # (C,) the lighting's norm: the scale of a bounded band's claim
     band_det = torch.zeros(lmax + 1, nch, dtype=torch.bool)
     infl = torch.ones(lmax + 1, nch, dtype=torch.float64)
     for l in range(lmax + 1):
@@ -392,8 +469,19 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
         prior_dominated = sens is not None and sens > PRIOR_DOMINATED_RATIO
         det = resolved & (bound <= ERROR_BOUND_LIMIT) & observable
         band_det[l] = det
+        bounded, upper, upper_abs = False, None, None
+        if observable and not bool(det.all()) and sol.covariance is not None:
+            up, zero_ok = zero_band_bound(sol, sel, infl[l])
+            upper = float((up / scale.clamp_min(1e-300)).max())
+            bounded = bool(zero_ok.all()) and upper <= ZERO_BAND_LIMIT
+            upper_abs = up.tolist()
         reasons = []
-        if not observable:
+        if bounded:
+            reasons.append(
+                f"determined: no power above {max(upper_abs):.3g} ({100 * upper:.3g}% of the "
+                f"lighting's norm, probability {ERROR_BOUND_LEVEL:g}, from the data alone); the "
+                f"band is (nearly) empty, so its relative error is not a measure of it")
+        elif not observable:
             reasons.append("unobservable: the BRDF filter is exactly 0 in this band")
         elif not bool(resolved.all()):
             reasons.append(f"not resolved: posterior/prior variance {float(ratio.max()):.2g} "
@@ -428,7 +516,9 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             "reproducibility_chi2": z2, "reproducibility_limit": lim,
             "reproducible": bool(repro_ok.all()),
             "widened_by": math.sqrt(float(infl[l].max())),
-            "determined": bool(det.all()), "ill_conditioned": not bool(det.all()),
+            "determined": bool(det.all()), "bounded": bounded,
+            "norm_upper_bound_rel": upper, "norm_upper_bound": upper_abs,
+            "ill_conditioned": not (bool(det.all()) or bounded),
             "reason": "; ".join(["determined"] * bool(det.all()) + reasons),
             "singular_max": smax, "singular_min": smin,
             "condition": smax / smin if smin > 0 else math.inf,
@@ -438,7 +528,7 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
                                             torch.zeros_like(se)).median()),
             "resolution": float(sol.resolution[sel].median()),
         })
-        if not bool(det.all()) and first is None:
+        if not (bool(det.all()) or bounded) and first is None:
             first = l
     return rows, first, band_det, infl
 

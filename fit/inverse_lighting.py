@@ -25,6 +25,7 @@ from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
 from .conditioning import (
     BAYES_DEFINITION,
     ERROR_BOUND_LIMIT,
+    ZERO_BAND_LIMIT,
     band_statistics,
     band_statistics_bayes,
     model_adequacy,
@@ -623,7 +624,11 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             if r_["determined"] and not ok:
                 r_["determined"], r_["ill_conditioned"] = False, True
                 r_["reason"] = "imprecise once widened for the structured residual"
-        ill = next((r_["l"] for r_ in rows if not r_["determined"]), None)
+            elif r_.get("bounded") and r_["norm_upper_bound_rel"] * adequacy["widen"] \
+                    > ZERO_BAND_LIMIT:  # conservative: the whole bound widened
+                r_["bounded"], r_["ill_conditioned"] = False, True
+                r_["reason"] = "no longer bounded once widened for the structured residual"
+        ill = next((r_["l"] for r_ in rows if r_["ill_conditioned"]), None)
     stderr = torch.where(det, post_se, torch.full_like(post_se, math.inf))
     if not scale_fixing:
         scale_fixing = _scale_fixing_text(spec)

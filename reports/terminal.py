@@ -25,7 +25,8 @@ def _ill_bands(results: dict) -> list[int]:
 def _prior_dominated_bands(results: dict) -> list[int]:
     """Withheld lighting bands whose uncertainty the prior, not the images, sets (issue 12)."""
     return [b["l"] for b in ((results.get("lighting") or {}).get("bands") or [])
-            if b.get("prior_dominated") and not b.get("determined", True)]
+            if b.get("prior_dominated") and not b.get("determined", True)
+            and not b.get("bounded")]
 
 
 def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) -> list[str]:
@@ -45,8 +46,10 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
     prior = _prior_dominated_bands(results)
     if prior:
         lines.append(f"    set by the prior, not the images: l = {', '.join(map(str, prior))} "
-                     "(part of the lighting is faced by no sample, e.g. behind the object in "
-                     "one view; more views, not less noise, would determine them)")
+                     "(the images constrain them less than the fitted spectrum prior does: the "
+                     "BRDF filters them away, or part of the lighting is faced by no sample, "
+                     "e.g. behind the object in one view, which more views, not less noise, would "
+                     "determine)")
     lines.append(f"  model adequacy: {h['verdict'][1]}")
     ct = (results.get("aldrian_smith") or {}).get("colour_transform")
     if ct:  # which reference identified Aldrian & Smith's colour transform, or none
@@ -60,6 +63,11 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
         z = max(b["max_abs_z"] for b in det)
         lines.append(f"  vs ground truth: determined lighting bands within {fmt_num(z, 2)} "
                      f"std. errors")
+    held = [b for b in ((gt.get("lighting") or {}).get("bands") or []) if "bound_holds" in b]
+    if held:
+        bad = [str(b["l"]) for b in held if not b["bound_holds"]]
+        lines.append("  vs ground truth: bounded bands' true norm below their bound"
+                     + (f" except l = {', '.join(bad)}" if bad else " (all)"))
     warns = results.get("warnings") or []
     if warns:
         lines.append(f"  {len(warns)} warning{'s' if len(warns) > 1 else ''}:")

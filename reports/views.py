@@ -73,12 +73,20 @@ def _prediction_text(pred: dict | None) -> str:
     return parts[0] + (f" ({', '.join(extra)})" if extra else "")
 
 
-def _measured_text(first) -> str:
+def _measured_text(first, bands: list[dict] | None = None) -> str:
+    """Say where bands stop being determined, naming (nearly) empty *bounded* bands (issue 12)."""
+    bounded = [b for b in bands or [] if b.get("bounded")]
+    note = ""
+    if bounded:
+        worst = max((b.get("norm_upper_bound_rel") or 0.0) for b in bounded)
+        ls = ", ".join(str(b["l"]) for b in bounded)
+        note = (f"; l = {ls} bounded: no power above {fmt_num(100 * worst, 2)}% of the "
+                f"lighting's norm")
     if first is None:
-        return "every band up to lmax determined"
+        return "every band up to lmax determined" + (f" or bounded{note}" if note else "")
     if int(first) <= 0:
         return "from l = 0 (no band determined on its own)"
-    return f"from l = {int(first)} (bands l ≤ {int(first) - 1} determined)"
+    return f"from l = {int(first)} (bands l ≤ {int(first) - 1} determined{note})"
 
 
 def _verdict(results: dict) -> tuple[str, str]:
@@ -133,7 +141,8 @@ def headline(results: dict) -> dict:
         rows.append({"quantity": f"lighting, SH to l = {lt.get('lmax')}",
                      "value": "L₀₀ " + fmt_rgb_pm(c0, e0)
                      + (" (set by the gauge, not determined alone)" if gauge_fixed else ""),
-                     "measured": _measured_text(lt.get("ill_conditioned_from_l")),
+                     "measured": _measured_text(lt.get("ill_conditioned_from_l"),
+                                                lt.get("bands")),
                      "predicted": _prediction_text(pred),
                      "cite": rh_citation((pred or {}).get("model", model))})
     gi = results.get("gauge_invariant") or {}
@@ -251,7 +260,8 @@ def band_rows(bands: list[dict]) -> tuple[list[str], list[list[str]]]:
     present = [(k, n) for k, n in known if any(k in b for b in bands)]
     extra = sorted({k for b in bands for k, v in b.items()
                     if k not in dict(known) and (_is_num(v) or isinstance(v, bool))})
-    cols = [n for _, n in present] + [k.replace("_", " ") for k in extra]
+    why = any(isinstance(b.get("reason"), str) for b in bands)
+    cols = [n for _, n in present] + [k.replace("_", " ") for k in extra] + ["why"] * why
     rows = []
     for b in bands:
         r = []
@@ -264,6 +274,8 @@ def band_rows(bands: list[dict]) -> tuple[list[str], list[list[str]]]:
             else:
                 r.append(fmt_num(v, 3))
         r += [fmt_num(b.get(k), 3) for k in extra]
+        if why:
+            r.append(str(b.get("reason") or ""))
         rows.append(r)
     return cols, rows
 
@@ -313,16 +325,25 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
         z = np.where(np.isfinite(err) & (err > 0), (est - t) / np.where(err > 0, err, 1),
                      np.nan)
         lmax = int(math.isqrt(k)) - 1
+        rows_by_l = {b.get("l"): b for b in lt.get("bands") or []}
         bands = []
         for l in range(lmax + 1):
             sl = slice(l * l, (l + 1) ** 2)
             zz = z[sl]
             fin = zz[np.isfinite(zz)]
-            bands.append({"l": l, "rms_true": float(np.sqrt(np.mean(t[sl] ** 2))),
-                          "rms_error": float(np.sqrt(np.mean((est[sl] - t[sl]) ** 2))),
-                          "max_abs_z": float(np.max(np.abs(fin))) if fin.size else None,
-                          "mean_z2": float(np.mean(fin ** 2)) if fin.size else None,
-                          "n_determined": int(fin.size), "n": int(zz.size)})
+            entry = {"l": l, "rms_true": float(np.sqrt(np.mean(t[sl] ** 2))),
+                     "rms_error": float(np.sqrt(np.mean((est[sl] - t[sl]) ** 2))),
+                     "max_abs_z": float(np.max(np.abs(fin))) if fin.size else None,
+                     "mean_z2": float(np.mean(fin ** 2)) if fin.size else None,
+                     "n_determined": int(fin.size), "n": int(zz.size)}
+            rb = rows_by_l.get(l) or {}
+            if rb.get("bounded") and rb.get("norm_upper_bound"):
+                # a bounded band's claim is "norm <= bound" per channel: check it on the truth
+                tn = np.linalg.norm(t[sl], axis=0)
+                ub = np.asarray(rb["norm_upper_bound"], np.float64)[: tn.size]
+                entry["true_norm"] = tn.tolist()
+                entry["bound_holds"] = bool(np.all(tn <= ub))
+            bands.append(entry)
         out["lighting"] = {"truth": how + (" × true albedo (the fit determines the product)"
                                            if scaled else ""),
                            "true": t.tolist(), "z": [[None if not math.isfinite(v) else float(v)
