@@ -19,7 +19,7 @@ from brdfcap.reconstruct.mesh import uv_sphere
 
 __all__ = ["unit", "random_lighting", "views_above", "sh_probe", "render_reference",
            "scene_text", "TINY_SCENE", "make_tiny_capture", "reference_dir", "SHADOW_ALBEDO",
-           "write_ply", "shadow_scene_toml"]
+           "write_ply", "shadow_scene_toml", "PHONG_MATERIAL", "NOISE"]
 
 #: A tiny (48x48 px, 2 views) noisy Lambertian sphere under Grace Cathedral (R&H 2001).
 TINY_SCENE = """
@@ -127,20 +127,33 @@ def render_reference(spec, light: torch.Tensor, normal: torch.Tensor, wo: torch.
     return render_environment(spec, normal, wo, sh_probe(light, height), rel_tol=rel_tol)
 
 
+#: ``[material]`` of a glossy test sphere (``scene_text(material=PHONG_MATERIAL)``).
+PHONG_MATERIAL = 'model = "phong"\nalbedo = [0.3, 0.3, 0.3]\nks = [0.5, 0.5, 0.5]\ns = 20.0'
+#: ``[noise]`` of the small pipeline scenes: 1% relative, read noise 0.002, seed 0.
+NOISE = "relative = 0.01\nread = 0.002\nseed = 0"
+
+
 def scene_text(*, width: int = 96, views: int = 6, noise: str | None = None,
                albedo=(1.0, 1.0, 1.0), lighting: str = 'kind = "environment"\nsh = "grace-rh2001"',
-               extra: str = "") -> str:
-    """Return a small Lambertian-sphere scene TOML (input of ``simulate``)."""
+               extra: str = "", name: str = "test sphere", material: str | None = None,
+               distance: float = 4.0, tail: str = "") -> str:
+    """Return a small sphere scene TOML (input of ``simulate``).
+
+    Lambertian with ``albedo`` unless ``material`` gives the ``[material]`` body (e.g.
+    :data:`PHONG_MATERIAL`); ``noise`` the ``[noise]`` body; ``extra`` lines go before the
+    tables, ``tail`` (e.g. a ``[render]`` table) after them. ``lighting="{lighting}"`` leaves a
+    ``str.format`` placeholder.
+    """
     noise_tab = f"\n[noise]\n{noise}\n" if noise else ""
+    mat = material if material is not None else f'model = "lambertian"\nalbedo = {list(albedo)}'
     return f"""
-name = "test sphere"
+name = "{name}"
 {extra}
 [geometry]
 shape = "sphere"
 radius = 1.0
 [material]
-model = "lambertian"
-albedo = {list(albedo)}
+{mat}
 [lighting]
 {lighting}
 [camera]
@@ -150,9 +163,9 @@ height = {width}
 fov_deg = 40.0
 [views]
 count = {views}
-distance = 4.0
+distance = {distance}
 elevation_deg = 30.0
-{noise_tab}
+{noise_tab}{tail}
 """
 
 

@@ -25,32 +25,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from brdfcap.cli import main
+from brdfcap.testing import NOISE, scene_text
 
-SCENE = """
-name = "hostile"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "lambertian"
-albedo = [1.0, 1.0, 1.0]
-[lighting]
-kind = "environment"
-sh = "grace-rh2001"
-[camera]
-model = "pinhole"
-width = 48
-height = 48
-fov_deg = 40.0
-[views]
-count = 4
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.01
-read = 0.002
-seed = 0
-"""
+SCENE = scene_text(name="hostile", width=48, views=4, noise=NOISE)
 
 SENTINEL = "an unrelated file the run must not touch\n"
 

@@ -12,34 +12,13 @@ from brdfcap.fit.datasets import GRACE_RH2001
 from click.testing import CliRunner
 
 from brdfcap.cli import main
+from brdfcap.testing import PHONG_MATERIAL, scene_text
 
-SCENE = """
-name = "phong sphere"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "phong"
-albedo = [0.3, 0.3, 0.3]
-ks = [0.5, 0.5, 0.5]
-s = 20.0
-[lighting]
-{lighting}
-[camera]
-model = "pinhole"
-width = 48
-height = 48
-fov_deg = 40.0
-[views]
-count = 6
-distance = 4.0
-elevation_deg = 30.0
-[render]
 # reference renderer (issue 13): one ray per pixel (the fits sample pixel centres) and a 0.3 %
 # quadrature tolerance keep the simulation to seconds on 2 cores
-spp = 1
-rel_tol = 3e-3
-"""
+RENDER = "[render]\nspp = 1\nrel_tol = 3e-3\n"
+SCENE = scene_text(name="phong sphere", width=48, material=PHONG_MATERIAL, lighting="{lighting}",
+                   tail=RENDER)
 ENV = 'kind = "environment"\nsh = "grace-rh2001"\nknown = true'
 DIR = ('kind = "directional"\n[[lighting.lights]]\ndirection = [1.0, 0.3, 0.5]\n'
        '[[lighting.lights]]\ndirection = [-0.4, 0.8, 0.6]\n'

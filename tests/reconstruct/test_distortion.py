@@ -17,28 +17,9 @@ from brdfcap.capture.types import CameraModel
 from brdfcap.reconstruct.camera import camera_rays, check_distortion
 
 from brdfcap.core.errors import GeometryError
+from brdfcap.testing import scene_text
 
-SCENE = """
-name = "distortion"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "lambertian"
-albedo = [1.0, 1.0, 1.0]
-[lighting]
-kind = "environment"
-sh = "grace-rh2001"
-[camera]
-model = "pinhole"
-width = 64
-height = 64
-fov_deg = 40.0
-[views]
-count = 6
-distance = 3.2
-elevation_deg = 30.0
-"""
+SCENE = scene_text(name="distortion", width=64, distance=3.2)
 
 DIST = (-0.3, 0.1, 0.002, -0.001)
 

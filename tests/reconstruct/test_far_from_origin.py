@@ -12,31 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SCENE = """
-name = "far from the origin"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "lambertian"
-albedo = [1.0, 1.0, 1.0]
-[lighting]
-kind = "environment"
-sh = "grace-rh2001"
-[camera]
-model = "pinhole"
-width = 48
-height = 48
-fov_deg = 40.0
-[views]
-count = 6
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.01
-read = 0.002
-seed = 0
-"""
+from brdfcap.testing import NOISE, scene_text
+
+SCENE = scene_text(name="far from the origin", width=48, noise=NOISE)
 
 OFFSET = np.array([1.0e6, -5.0e5, 3.0e5])
 

@@ -22,34 +22,10 @@ from brdfcap.reports.numbers import find_reprs, fmt_pm, visible_text
 from click.testing import CliRunner
 
 from brdfcap.cli import main
-from brdfcap.testing import make_tiny_capture, scene_text
+from brdfcap.testing import NOISE, PHONG_MATERIAL, make_tiny_capture, scene_text
 
-PHONG = """
-name = "phong sphere"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "phong"
-albedo = [0.3, 0.3, 0.3]
-ks = [0.5, 0.5, 0.5]
-s = 20.0
-[lighting]
-{lighting}
-[camera]
-model = "pinhole"
-width = 40
-height = 40
-fov_deg = 40.0
-[views]
-count = 4
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.01
-read = 0.002
-seed = 1
-"""
+PHONG = scene_text(name="phong sphere", width=40, views=4, material=PHONG_MATERIAL,
+                   lighting="{lighting}", noise=NOISE.replace("seed = 0", "seed = 1"))
 ENV = 'kind = "environment"\nsh = "grace-rh2001"\nknown = true'
 DIR = ('kind = "directional"\n[[lighting.lights]]\ndirection = [1.0, 0.3, 0.5]\n'
        '[[lighting.lights]]\ndirection = [-0.4, 0.8, 0.6]\n'
