@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,7 +90,13 @@ def _image_tables(images: list[dict]) -> tuple[list[str], dict[str, dict]]:
     return keys, nested
 
 
+@functools.lru_cache(maxsize=1)
 def _env() -> jinja2.Environment:
+    """Return the report's template environment, built once per process.
+
+    jinja2 caches compiled templates per environment: one environment means the report
+    template is compiled on the first report only (and again if the file changes).
+    """
     return jinja2.Environment(
         loader=jinja2.FileSystemLoader(str(Path(__file__).parent / "templates")),
         autoescape=jinja2.select_autoescape(["html"]),

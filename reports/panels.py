@@ -17,12 +17,16 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
+from brdfcap.fit.render import irradiance_sh
+from brdfcap.fit.sh import real_sh
 from PIL import Image
 
-from .figures import display_encode
+from .figures import display_encode, sh_radiance_latlong
 
 __all__ = ["object_box", "png_data_uri", "Panels", "input_and_residual_panels",
-           "SAMPLE_VIEWS", "diverging_rgb"]
+           "SAMPLE_VIEWS", "diverging_rgb", "sequential_rgb", "lighting_panels",
+           "relit_sphere_images", "albedo_panels"]
 
 #: Views shown as full tiles; more views are shown as this many evenly spaced ones plus a
 #: contact sheet of all.
@@ -96,6 +100,28 @@ def _rdbu_lut() -> np.ndarray:
 
     cmap = colormaps["RdBu_r"]
     return cmap(np.arange(cmap.N))[:, :3]
+
+
+@functools.lru_cache(maxsize=1)
+def _viridis_lut() -> np.ndarray:
+    """Matplotlib's ``viridis`` lookup table, ``(N, 3)``."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"]
+    return cmap(np.arange(cmap.N))[:, :3]
+
+
+def sequential_rgb(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Values -> RGB on matplotlib's ``viridis`` over ``[lo, hi]``; NaN (not fitted) black.
+
+    The same table lookup as ``imshow(x, cmap="viridis", vmin=lo, vmax=hi)``.
+    """
+    span = hi - lo if hi > lo else 1.0
+    t = np.clip((np.nan_to_num(x, nan=lo) - lo) / span, 0, 1)
+    lut = _viridis_lut()
+    rgb = lut[np.minimum((t * len(lut)).astype(np.intp), len(lut) - 1)]
+    rgb[~np.isfinite(x)] = 0.0
+    return rgb
 
 
 def diverging_rgb(x: np.ndarray, lim: float) -> np.ndarray:
@@ -212,3 +238,131 @@ def input_and_residual_panels(observed: list[np.ndarray], rendered: list[np.ndar
     bar = diverging_rgb(np.linspace(-lim, lim, 256)[None, :].repeat(12, 0), lim)
     p.colorbar = png_data_uri(bar)
     return p
+
+
+# --------------------------------------------------------------------------------------------
+# lighting and BRDF-map images: pixels written as PNG, labels in the HTML
+# --------------------------------------------------------------------------------------------
+
+def lighting_panels(coefficients: np.ndarray, ill_from: int | None = None,
+                    height: int = 64) -> list[dict]:
+    """Recovered lighting as lat-long PNGs: ``[{"uri", "caption"}]``, one or two panels.
+
+    Each panel is ``L(ω) = Σ L_lm Y_lm(ω)`` on the lat-long grid of
+    :func:`.figures.sh_radiance_latlong` (rows θ from +z, top = up; columns φ from +x toward
+    +y), display-encoded on one white (99.5th percentile of the positive radiance of all
+    panels); negative values (SH truncation ringing) are black. With ``ill_from`` set, a
+    second panel shows the lighting truncated to the determined bands ``l < ill_from``.
+    """
+    c = np.asarray(coefficients, np.float64)
+    lmax = int(math.isqrt(len(c))) - 1
+    panels = [(c, f"all bands l ≤ {lmax}")]
+    if ill_from is not None and 0 < ill_from <= lmax:
+        panels.append((c[: ill_from ** 2], f"determined bands only, l ≤ {ill_from - 1}"))
+    imgs = [sh_radiance_latlong(x, height) for x, _ in panels]
+    pos = np.concatenate([np.clip(i, 0, None).ravel() for i in imgs])
+    white = float(np.percentile(pos[pos > 0], 99.5)) if np.any(pos > 0) else 1.0
+    return [{"uri": png_data_uri(display_encode(np.clip(img, 0, None), white)),
+             "caption": f"{title}; {100 * float(np.mean(img < 0)):.0f}% of directions < 0 "
+                        "(SH ringing)"}
+            for img, (_, title) in zip(imgs, panels)]
+
+
+#: Viewing directions of the re-lit spheres: (label, view direction, image up), world frame.
+SPHERE_VIEWS = (("from +x", (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+                ("from +y", (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+                ("from above (+z)", (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)))
+
+
+def _sphere_view(n_px: int, view: np.ndarray, up: np.ndarray):
+    """Orthographic view of the unit sphere from direction ``view``: normals, hit mask, ωo."""
+    v = view / np.linalg.norm(view)
+    r = np.cross(up, v)
+    r /= np.linalg.norm(r)
+    u = np.cross(v, r)
+    s = (np.arange(n_px) + 0.5) / n_px * 2 - 1
+    X, Y = np.meshgrid(s, -s)
+    rr = X**2 + Y**2
+    hit = rr < 1
+    z = np.sqrt(np.clip(1 - rr, 0, None))
+    n = X[..., None] * r + Y[..., None] * u + z[..., None] * v
+    return n, hit, v
+
+
+def relit_sphere_images(coefficients: np.ndarray, albedo=(1.0, 1.0, 1.0), n_px: int = 96
+                        ) -> dict[str, list[np.ndarray]]:
+    """Spheres re-lit under SH lighting, seen along :data:`SPHERE_VIEWS`: linear radiance.
+
+    ``{"lambertian": [...], "mirror": [...], "hit": [...]}``, per view an ``(n_px, n_px, C)``
+    image (0 off the sphere) and its ``(n_px, n_px)`` sphere mask. Lambertian: ``(a/π) E(n)``
+    with the irradiance of Ramamoorthi & Hanrahan (2001), eq. 8
+    (:func:`brdfcap.fit.render.irradiance_sh`); mirror: ``L(r)`` with
+    ``r = 2 (n·ωo) n − ωo``, the lighting itself band-limited to its lmax.
+    """
+    c = torch.as_tensor(np.asarray(coefficients, np.float64))
+    lmax = int(math.isqrt(c.shape[0])) - 1
+    alb = np.asarray(albedo, np.float64)
+    out: dict[str, list[np.ndarray]] = {"lambertian": [], "mirror": [], "hit": []}
+    for _, v, up in SPHERE_VIEWS:
+        n, hit, wo = _sphere_view(n_px, np.asarray(v), np.asarray(up))
+        nt = torch.as_tensor(n[hit])
+        d = np.zeros((n_px, n_px, c.shape[1]))
+        d[hit] = (irradiance_sh(nt, c) / math.pi).numpy() * alb
+        refl = 2 * (nt @ torch.as_tensor(wo))[:, None] * nt - torch.as_tensor(wo)
+        m = np.zeros_like(d)
+        m[hit] = (real_sh(refl, lmax) @ c).numpy()
+        out["lambertian"].append(d)
+        out["mirror"].append(m)
+        out["hit"].append(hit)
+    return out
+
+
+def _encode_row(imgs: list[np.ndarray], hits: list[np.ndarray]) -> list[str]:
+    """Display-encode images on one white (99th percentile of their positive values)."""
+    pos = np.concatenate([np.clip(i[h], 0, None).ravel() for i, h in zip(imgs, hits)])
+    white = float(np.percentile(pos[pos > 0], 99)) if np.any(pos > 0) else 1.0
+    return [png_data_uri(display_encode(np.clip(i, 0, None), white)) for i in imgs]
+
+
+def relit_sphere_panels(coefficients: np.ndarray, albedo=(1.0, 1.0, 1.0), n_px: int = 96
+                        ) -> dict:
+    """PNGs of :func:`relit_sphere_images`: ``{"columns": [label], "rows": [(name, [uri])]}``.
+
+    One display white per row (Lambertian, mirror), as the report shows them side by side.
+    """
+    im = relit_sphere_images(coefficients, albedo, n_px)
+    return {"columns": [label for label, _, _ in SPHERE_VIEWS],
+            "rows": [("Lambertian", _encode_row(im["lambertian"], im["hit"])),
+                     ("mirror", _encode_row(im["mirror"], im["hit"]))]}
+
+
+def albedo_panels(albedo_map: np.ndarray, stderr_map: np.ndarray | None = None) -> dict:
+    """Albedo map and its relative standard error as PNGs, cropped to the fitted pixels.
+
+    ``albedo_map``: ``(H, W, 3)`` diffuse albedo ``k_d``, NaN where no pixel was fitted (shown
+    black), display-encoded with white = max(1, largest k_d). ``stderr_map``: the same shape;
+    shown as the mean over RGB of ``stderr / k_d`` on viridis between its smallest and largest
+    value (NaN black). Returns ``{"albedo", "rel_stderr", "colorbar", "range", "crop"}``
+    (``rel_stderr``, ``colorbar`` and ``range`` ``None`` without ``stderr_map``).
+    """
+    a = np.asarray(albedo_map, np.float64)
+    fitted = np.isfinite(a).any(-1)
+    rs, cs = object_box([fitted])
+    white = max(1.0, float(np.nanmax(a, initial=0)))
+    out = {"albedo": png_data_uri(display_encode(np.nan_to_num(a[rs, cs], nan=0.0), white)),
+           "rel_stderr": None, "colorbar": None, "range": None,
+           "crop": (rs.start or 0, rs.stop or a.shape[0], cs.start or 0, cs.stop or a.shape[1])}
+    if stderr_map is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.asarray(stderr_map, np.float64) / np.where(a > 0, a, np.nan)
+        ok = np.isfinite(ratio).any(-1)
+        rel = np.full(ok.shape, np.nan)
+        with np.errstate(invalid="ignore"):
+            rel[ok] = np.nanmean(ratio[ok], axis=-1)
+        fin = rel[np.isfinite(rel)]
+        lo, hi = (float(fin.min()), float(fin.max())) if fin.size else (0.0, 1.0)
+        out["rel_stderr"] = png_data_uri(sequential_rgb(rel[rs, cs], lo, hi))
+        out["colorbar"] = png_data_uri(sequential_rgb(
+            np.linspace(lo, hi, 256)[None, :].repeat(12, 0), lo, hi))
+        out["range"] = (lo, hi)
+    return out

@@ -1,0 +1,90 @@
+"""Report images written straight from arrays (issue #18): lighting, re-lit spheres, albedo map.
+
+They replaced matplotlib figures; the pixels must still be the quantities the captions name.
+Expected values come from closed forms (constant lighting), not from the code under test.
+"""
+
+import base64
+import io
+import math
+
+import numpy as np
+from brdfcap.reports.panels import (
+    SPHERE_VIEWS,
+    albedo_panels,
+    lighting_panels,
+    relit_sphere_images,
+    sequential_rgb,
+)
+from matplotlib import colormaps
+from PIL import Image
+
+Y00 = 0.5 / math.sqrt(math.pi)  # real SH Y_00 (docs/conventions.md)
+
+
+def _decode(uri: str) -> np.ndarray:
+    assert uri.startswith("data:image/png;base64,")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(uri.split(",", 1)[1]))))
+
+
+def test_constant_lighting_relights_spheres_to_albedo_times_radiance():
+    """Constant radiance L: E(n) = π L on every normal, so (a/π) E = a L; a mirror shows L."""
+    c = np.zeros((9, 3))
+    c[0] = [2.0, 1.0, 0.5]
+    albedo = [0.8, 0.5, 0.2]
+    im = relit_sphere_images(c, albedo, n_px=32)
+    radiance = c[0] * Y00
+    assert len(im["lambertian"]) == len(SPHERE_VIEWS)
+    for d, m, hit in zip(im["lambertian"], im["mirror"], im["hit"]):
+        assert hit.sum() > 0.7 * 32 * 32 and not hit.all()
+        np.testing.assert_allclose(d[hit], np.broadcast_to(np.multiply(albedo, radiance),
+                                                           d[hit].shape), rtol=1e-12)
+        np.testing.assert_allclose(m[hit], np.broadcast_to(radiance, m[hit].shape), rtol=1e-12)
+        assert not d[~hit].any() and not m[~hit].any()
+
+
+def test_latlong_panels_top_row_is_up_and_truncation_adds_a_panel():
+    """Y_10 ∝ z: the lighting is brighter in the top row (θ = 0, +z); ill_from adds l < ill_from."""
+    c = np.zeros((9, 3))
+    c[0] = 1.0
+    c[2] = 0.5  # Y_10
+    c[4] = 0.3  # an l = 2 term the truncated panel must drop
+    full = lighting_panels(c, None, height=16)
+    assert len(full) == 1 and "all bands l ≤ 2" in full[0]["caption"]
+    img = _decode(full[0]["uri"]).astype(float)
+    assert img.shape == (16, 32, 3)
+    assert img[0].mean() > img[-1].mean() + 20
+    both = lighting_panels(c, 1, height=16)
+    assert len(both) == 2 and "determined bands only, l ≤ 0" in both[1]["caption"]
+    flat = _decode(both[1]["uri"]).astype(float)
+    assert np.ptp(flat) <= 1  # L_00 alone: constant over the sphere
+    assert "0% of directions < 0" in both[1]["caption"]
+
+
+def test_sequential_rgb_equals_matplotlib_viridis():
+    """The table lookup of imshow(x, cmap="viridis", vmin=lo, vmax=hi); NaN shown black."""
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-0.2, 1.2, size=(30, 20))
+    x[0, :2] = [0.0, 1.0]
+    x[2, ::4] = np.nan
+    lo, hi = 0.0, 1.0
+    ref = colormaps["viridis"](np.clip(np.nan_to_num(x, nan=0.0), lo, hi))[..., :3]
+    ref[~np.isfinite(x)] = 0.0
+    np.testing.assert_array_equal(sequential_rgb(x, lo, hi), ref)
+
+
+def test_albedo_panels_crop_to_fitted_pixels_and_report_the_error_range():
+    a = np.full((60, 80, 3), np.nan)
+    a[20:30, 30:50] = 0.5
+    se = np.full_like(a, np.nan)
+    se[20:30, 30:50] = 0.05
+    se[20, 30] = 0.1  # relative error 0.2 at one pixel
+    out = albedo_panels(a, se)
+    r0, r1, c0, c1 = out["crop"]
+    assert r0 <= 20 and r1 >= 30 and c0 <= 30 and c1 >= 50
+    assert (r1 - r0, c1 - c0) < (60, 80)  # cropped, not the full frame
+    assert _decode(out["albedo"]).shape[:2] == (r1 - r0, c1 - c0)
+    np.testing.assert_allclose(out["range"], (0.1, 0.2))
+    assert _decode(out["colorbar"]).shape == (12, 256, 3)
+    no_err = albedo_panels(a)
+    assert no_err["rel_stderr"] is None and no_err["range"] is None
