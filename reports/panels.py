@@ -2,10 +2,11 @@
 
 Inputs and residuals are pixels, not plots: each view becomes one cropped PNG tile (no
 matplotlib figure per thumbnail), labelled in HTML. Many views (a photometric-stereo capture's
-96 lights) get a sample of full-size tiles and one contact sheet of all of them
-(``docs/reports.md#image-panels``). Display encoding as in :func:`.figures.display_encode`:
-linear radiance / 99th-percentile white, sRGB transfer; residuals on a diverging map
-(RdBu, symmetric about 0, limit the 99th percentile of |residual|).
+96 lights) get a sample of full-size tiles and one contact sheet of all of them, input and
+residual side by side (``docs/reports.md#image-panels``). Display encoding as in
+:func:`.figures.display_encode`: linear radiance / 99th-percentile white, sRGB transfer;
+residuals on a diverging map (RdBu, symmetric about 0, limit the 99th percentile of
+|residual|).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ __all__ = ["object_box", "png_data_uri", "Panels", "input_and_residual_panels",
 SAMPLE_VIEWS = 12
 _TILE = 240  # longest side of a tile, px
 _SHEET_TILE = 96  # longest side of a contact-sheet tile, px
+SHEET_COLUMNS = 6  # contact-sheet cells (input | residual) per row
 _NOT_USED = np.array([0.8, 0.1, 0.1])  # red tint of pixels the fit did not use
 _OUTLINE = np.array([0.0, 1.0, 1.0])  # cyan silhouette of the registered mesh
 
@@ -169,12 +171,23 @@ class Panels:
     inputs: list[str]  # data URI per shown view
     residuals: list[str]  # data URI per shown view: observed | re-rendered | residual
     residual_limit: float  # colour-scale limit (linear units)
-    input_sheet: str | None = None  # contact sheets when not every view is shown
-    residual_sheet: str | None = None
+    #: one contact sheet when not every view is shown: per view its input tile (left) and
+    #: residual tile (right), row by row in view order
+    sheet: str | None = None
     outline_drawn: bool = False
     crop: tuple[int, int, int, int] = (0, 0, 0, 0)  # (row0, row1, col0, col1)
     colorbar: str = ""
     notes: list[str] = field(default_factory=list)
+
+
+def _input_tile(o: np.ndarray, m: np.ndarray, outline: np.ndarray | None,
+                white: float) -> np.ndarray:
+    """Display-encoded input; red tint where ``m`` is False; cyan where ``outline``."""
+    tile = display_encode(o, white)
+    tile[~m] = 0.6 * tile[~m] + 0.4 * _NOT_USED
+    if outline is not None:
+        tile[outline] = _OUTLINE
+    return tile
 
 
 def _shown(n: int, k: int = SAMPLE_VIEWS) -> list[int]:
@@ -207,34 +220,33 @@ def input_and_residual_panels(observed: list[np.ndarray], rendered: list[np.ndar
     fin = np.concatenate([np.abs(x[np.isfinite(x)]) for x in res]) if res else np.zeros(0)
     lim = float(np.percentile(fin, 99)) if fin.size else 1.0
     lim = lim if lim > 0 else 1.0
-    shown = _shown(n)
+    shown = set(_shown(n))
+    sheet = len(shown) < n
     drawn = False
-    in_tiles, strips, sheet_in, sheet_res = [], [], [], []
+    in_tiles, strips, cells = [], [], []
     for i in range(n):
-        o, m = _rgb3(observed[i][rs, cs]), masks[i][rs, cs]  # crop first: encode less
-        tile = display_encode(o, white)
-        tile[~m] = 0.6 * tile[~m] + 0.4 * _NOT_USED
         sil = silhouettes[i] if silhouettes is not None and i < len(silhouettes) else None
-        if sil is not None and np.any(sil) and not np.all(sil):
-            tile[_outline(np.asarray(sil, bool))[rs, cs]] = _OUTLINE
-            drawn = True
+        outline = (_outline(np.asarray(sil, bool))[rs, cs]
+                   if sil is not None and np.any(sil) and not np.all(sil) else None)
+        drawn |= outline is not None
+        o, m = _rgb3(observed[i][rs, cs]), masks[i][rs, cs]  # crop first: encode less
+        tile = _input_tile(o, m, outline, white)
         rtile = diverging_rgb(res[i], lim)
         if i in shown:
             in_tiles.append(png_data_uri(_resize(tile, _TILE)))
-            ren = display_encode(np.where(m[..., None], _rgb3(rendered[i][rs, cs]), 0.0), white)
+            ren = display_encode(np.where(m[..., None], _rgb3(rendered[i][rs, cs]), 0.0),
+                                 white)
             gap = np.ones((tile.shape[0], 3, 3))
-            strips.append(png_data_uri(_resize(np.concatenate([tile, gap, ren, gap, rtile], 1),
-                                               3 * _TILE)))
-        if len(shown) < n:
-            sheet_in.append(_resize(tile, _SHEET_TILE))
-            sheet_res.append(_resize(rtile, _SHEET_TILE))
-    p = Panels(n, unit, shown, [titles[i] for i in shown], in_tiles, strips, lim,
-               outline_drawn=drawn, crop=(rs.start or 0, rs.stop or 0, cs.start or 0,
-                                          cs.stop or 0))
-    if len(shown) < n:
-        cols = min(12, n)
-        p.input_sheet = png_data_uri(_sheet(sheet_in, cols))
-        p.residual_sheet = png_data_uri(_sheet(sheet_res, cols))
+            strips.append(png_data_uri(_resize(
+                np.concatenate([tile, gap, ren, gap, rtile], 1), 3 * _TILE)))
+        if sheet:
+            t, rt = _resize(tile, _SHEET_TILE), _resize(rtile, _SHEET_TILE)
+            cells.append(np.concatenate([t, np.ones((t.shape[0], 3, 3)), rt], 1))
+    p = Panels(n, unit, sorted(shown), [titles[i] for i in sorted(shown)], in_tiles, strips,
+               lim, outline_drawn=drawn, crop=(rs.start or 0, rs.stop or 0, cs.start or 0,
+                                               cs.stop or 0))
+    if sheet:
+        p.sheet = png_data_uri(_sheet(cells, min(SHEET_COLUMNS, n)))
     bar = diverging_rgb(np.linspace(-lim, lim, 256)[None, :].repeat(12, 0), lim)
     p.colorbar = png_data_uri(bar)
     return p

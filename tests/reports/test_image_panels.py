@@ -10,8 +10,11 @@ import math
 
 import numpy as np
 from brdfcap.reports.panels import (
+    SAMPLE_VIEWS,
+    SHEET_COLUMNS,
     SPHERE_VIEWS,
     albedo_panels,
+    input_and_residual_panels,
     lighting_panels,
     relit_sphere_images,
     sequential_rgb,
@@ -88,3 +91,24 @@ def test_albedo_panels_crop_to_fitted_pixels_and_report_the_error_range():
     assert _decode(out["colorbar"]).shape == (12, 256, 3)
     no_err = albedo_panels(a)
     assert no_err["rel_stderr"] is None and no_err["range"] is None
+
+
+def test_many_views_get_one_contact_sheet_of_input_and_residual_pairs():
+    """20 views: 12 shown in full, one sheet with all 20 (input | residual), 6 pairs per row."""
+    rng = np.random.default_rng(0)
+    n, h, w = 20, 40, 40
+    obs = [rng.uniform(0.1, 1.0, (h, w, 3)) for _ in range(n)]
+    ren = [o * 0.9 for o in obs]
+    masks = [np.pad(np.ones((30, 30), bool), 5) for _ in range(n)]
+    p = input_and_residual_panels(obs, ren, masks, [f"v{i}" for i in range(n)], unit="light")
+    assert len(p.shown) == SAMPLE_VIEWS and len(p.inputs) == len(p.residuals) == SAMPLE_VIEWS
+    sheet = _decode(p.sheet)
+    rows = -(-n // SHEET_COLUMNS)
+    ch, cw = p.crop[1] - p.crop[0], p.crop[3] - p.crop[2]  # no shrink: smaller than a tile
+    assert sheet.shape[:2] == (rows * (ch + 2) - 2, SHEET_COLUMNS * (2 * cw + 3 + 2) - 2)
+    # the residual half of the first cell is red-ish (observed > re-rendered: positive)
+    right = sheet[:ch, cw + 3: 2 * cw + 3].astype(int)
+    inner = right[ch // 2 - 3: ch // 2 + 3, cw // 2 - 3: cw // 2 + 3]
+    assert (inner[..., 0] > inner[..., 2]).all()
+    few = input_and_residual_panels(obs[:3], ren[:3], masks[:3], ["a", "b", "c"])
+    assert few.sheet is None and len(few.inputs) == 3
