@@ -22,7 +22,7 @@ from .views import (
     truth_rows,
 )
 
-__all__ = ["ReportInputs", "render_report", "write_report"]
+__all__ = ["ReportInputs", "render_report", "write_report", "report_template"]
 
 
 @dataclass
@@ -104,6 +104,11 @@ def _env() -> jinja2.Environment:
     )
 
 
+def report_template() -> jinja2.Template:
+    """Return the compiled ``report.html`` template (compiled on the first call per process)."""
+    return _env().get_template("report.html")
+
+
 def render_report(inp: ReportInputs) -> str:
     """Render ``report.html`` to a string."""
     r = inp.results
@@ -136,12 +141,11 @@ def render_report(inp: ReportInputs) -> str:
         "panels": inp.figures.get("panels"),
         "n_images": len(r.get("images") or []),
     }
-    tpl = _env().get_template("report.html")
-    return tpl.render(r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings,
-                      v=views, chain_keys=keys, chain_common=common, per_view=per_view,
-                      fmt=_fmt, fmt_pm=fmt_pm,
-                      fmt_rgb=fmt_rgb, fmt_rgb_pm=fmt_rgb_pm, fmt_band=fmt_band,
-                      fmt_num=fmt_num, extras=inp.extras)
+    return report_template().render(
+        r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings, v=views,
+        chain_keys=keys, chain_common=common, per_view=per_view, fmt=_fmt, fmt_pm=fmt_pm,
+        fmt_rgb=fmt_rgb, fmt_rgb_pm=fmt_rgb_pm, fmt_band=fmt_band, fmt_num=fmt_num,
+        extras=inp.extras)
 
 
 def write_report(path: str | Path, inp: ReportInputs) -> Path:
