@@ -16,6 +16,7 @@ from brdfcap.reports.panels import (
     albedo_panels,
     input_and_residual_panels,
     lighting_panels,
+    png_bytes,
     relit_sphere_images,
     sequential_rgb,
 )
@@ -112,3 +113,12 @@ def test_many_views_get_one_contact_sheet_of_input_and_residual_pairs():
     assert (inner[..., 0] > inner[..., 2]).all()
     few = input_and_residual_panels(obs[:3], ren[:3], masks[:3], ["a", "b", "c"])
     assert few.sheet is None and len(few.inputs) == 3
+
+
+def test_png_bytes_decode_to_the_same_pixels():
+    """The unfiltered zlib PNG writer is lossless for any size (Pillow decodes it)."""
+    rng = np.random.default_rng(2)
+    for h, w in ((1, 1), (3, 7), (40, 33)):
+        a = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        got = np.asarray(Image.open(io.BytesIO(png_bytes(a))))
+        assert got.shape == (h, w, 3) and np.array_equal(got, a)
