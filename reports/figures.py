@@ -398,7 +398,7 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     handles, labels = ax2.get_legend_handles_labels()
     fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=len(labels),
                bbox_to_anchor=(0.5, 0.0), frameon=False)
-    fixed_layout(fig, left=0.7, right=0.3, bottom=0.85, top=0.65 if delta is not None else 0.45,
+    fixed_layout(fig, left=0.7, right=0.3, bottom=0.75, top=0.65 if delta is not None else 0.45,
                  wspace=0.3)
     return fig
 
