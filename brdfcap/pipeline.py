@@ -9,11 +9,15 @@ is assembled by :mod:`brdfcap.reports.assemble` and the outputs written by the o
 
 from __future__ import annotations
 
+import logging
+import math
+import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 
 from brdfcap.capture.colour_reference import (
@@ -33,14 +37,25 @@ from brdfcap.core.profiling import StageProfiler
 from brdfcap.core.provenance import config_record, provenance, versions
 from brdfcap.fit.lighting import AlbedoFit, SHFit
 from brdfcap.fit.problems import FitOptions, FitResult, Known, get_problem, solve_problem
-from brdfcap.reconstruct.geometry import Geometry, Samples, build_samples, compute_capture_geometry
+from brdfcap.fit.sh import real_sh
+from brdfcap.reconstruct.geometry import (
+    CenteredScene,
+    Geometry,
+    Samples,
+    build_samples,
+    compute_capture_geometry,
+)
+from brdfcap.reconstruct.mesh import uv_sphere
 from brdfcap.reconstruct.normal_map import apply_frame_check
 from brdfcap.reports.assemble import report_figures, summary_lines
-from brdfcap.reports.html import ReportInputs, write_report
+from brdfcap.reports.figures import fig_to_data_uri, spectrum_figure
+from brdfcap.reports.html import ReportInputs, report_template, write_report
 from brdfcap.results_io import RESULTS_FORMAT, results_record, write_coefficients_csv
 
+_log = logging.getLogger("brdfcap")
+
 __all__ = ["RunOptions", "RunContext", "RunOutcome", "run_capture", "fit_capture", "known_of",
-           "reconstruct_capture",
+           "reconstruct_capture", "warm_up",
            "RESULTS_FORMAT", "versions"]
 
 
@@ -212,3 +227,53 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
     return RunOutcome(results=results, results_path=results_path, report_path=report_path,
                       capture=cap, samples=samples, lighting=fit.lighting, albedo=fit.albedo,
                       warnings=warnings, fit=fit)
+
+
+def warm_up() -> dict[str, float]:
+    """Pay the process's one-off costs now, not in its first capture; seconds per item.
+
+    What a fresh process otherwise pays inside its first run (``docs/performance.md``,
+    "Cold start"): importing open3d and building its first ray-casting scene (mesh captures),
+    tifffile (DNG tags of raw captures), sphericart-torch's operator registration and torch's
+    first LAPACK calls (the fit), matplotlib's font cache and mathtext parser (the report's
+    first plot) and the compilation of the report template. No result depends on it: it
+    touches caches and imports only. :mod:`brdfcap.batch` calls it once per worker process,
+    so a worker's first capture costs what its later ones do. An item that fails (an optional
+    library missing) is logged (logger ``brdfcap``) and timed as NaN; the run that needs it
+    reports the problem itself.
+    """
+    out: dict[str, float] = {}
+
+    def item(name: str, fn: Callable[[], object]) -> None:
+        t0 = time.perf_counter()
+        try:
+            fn()
+        except Exception as exc:  # noqa: BLE001 - a warm-up never fails a worker
+            _log.warning("warm-up of %s skipped (%s: %s)", name, type(exc).__name__, exc)
+            out[name] = math.nan
+            return
+        out[name] = time.perf_counter() - t0
+
+    def scene() -> None:
+        sc = CenteredScene(uv_sphere(n_theta=8, n_phi=16))
+        sc.cast_rays(np.array([[0.0, 0.0, 3.0, 0.0, 0.0, -1.0]]))
+
+    def torch_fit() -> None:
+        d = torch.nn.functional.normalize(torch.randn(64, 3, dtype=torch.float64), dim=1)
+        y = real_sh(d, 4)
+        g = y.T @ y + torch.eye(y.shape[1], dtype=torch.float64)
+        torch.linalg.eigh(g)
+        torch.cholesky_solve(y.T[:, :1], torch.linalg.cholesky(g))
+
+    def plot() -> None:
+        e = np.array([[1.0, 0.9, 0.8], [0.1, 0.1, 0.1], [0.0, 0.01, 0.02]])
+        fig_to_data_uri(spectrum_figure([], e, 0.01 * e, np.array([1.0, 0.5, 0.1]), 2,
+                                        predicted_first=3), tight=False)
+
+    item("open3d", scene)
+    item("tifffile", lambda: __import__("tifffile"))
+    item("torch", torch_fit)
+    item("matplotlib", plot)
+    item("template", report_template)
+    out["total"] = math.fsum(v for v in out.values() if math.isfinite(v))
+    return out

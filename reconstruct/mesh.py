@@ -141,11 +141,12 @@ def _run_lengths(keys: np.ndarray) -> np.ndarray:
     """Multiplicity of each distinct value of the int64 ``keys`` (sort-based).
 
     ``np.sort`` + run lengths, not ``np.unique``: numpy 2.4's hash-based ``np.unique`` takes
-    ~7 s on the 0.8 M edge keys of a 256x512 sphere, the sort 0.04 s.
+    ~7 s on the 0.8 M edge keys of a 256x512 sphere, the sort 0.04 s; numpy's default
+    (unstable, SIMD) sort 0.006 s — the order of equal keys does not change their counts.
     """
     if keys.size == 0:
         return np.zeros(0, np.int64)
-    s = np.sort(keys, kind="stable")
+    s = np.sort(keys)
     starts = np.flatnonzero(np.concatenate([[True], s[1:] != s[:-1]]))
     return np.diff(np.append(starts, s.size))
 

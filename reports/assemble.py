@@ -20,7 +20,7 @@ from brdfcap.fit.sh import band_of_index
 from . import figures as F
 from .brdf_figures import attach_brdf_measurement, attach_normal_map_info, brdf_summary_lines
 from .numbers import fmt_rgb_pm
-from .panels import input_and_residual_panels
+from .panels import input_and_residual_panels, lighting_panels, relit_sphere_panels
 from .views import headline, read_truth, truth_comparison
 
 __all__ = ["report_figures", "summary_lines", "residual_images"]
@@ -54,8 +54,8 @@ def residual_images(capture: Capture, samples, prediction):
     return obs, ren, masks, titles
 
 
-def _lighting_figures(fit: FitResult, results: dict) -> dict[str, str]:
-    """Per-band spectrum against the BRDF filter, lat-long lighting and re-lit spheres."""
+def _lighting_figures(fit: FitResult, results: dict) -> dict:
+    """Per-band spectrum against the BRDF filter (plot), lat-long lighting and re-lit spheres."""
     lighting = fit.lighting
     band = band_of_index(lighting.lmax)
     c = lighting.coefficients.cpu()
@@ -74,10 +74,12 @@ def _lighting_figures(fit: FitResult, results: dict) -> dict[str, str]:
     first_pred = pred.get("first_ill_band", 3 if model == "lambertian" else None)
     figs = {"spectrum": F.fig_to_data_uri(F.spectrum_figure(
         lighting.bands, energy, eerr, filt / filt[0], lighting.ill_conditioned_from_l,
-        predicted_first=first_pred, filter_label=f"{model} filter |Â_l/Â_0| × |L_0|"))}
+        predicted_first=first_pred, filter_label=f"{model} filter |Â_l/Â_0| × |L_0|"),
+        tight=False)}
     albedo = fit.known_albedo if fit.known_albedo is not None else np.ones(3)
-    figs.update(F.lighting_figures(c.numpy(), lighting.ill_conditioned_from_l,
-                                   np.asarray(albedo, dtype=np.float64).tolist()))
+    figs["lighting_latlong"] = lighting_panels(c.numpy(), lighting.ill_conditioned_from_l)
+    figs["relit_spheres"] = relit_sphere_panels(
+        c.numpy(), np.asarray(albedo, dtype=np.float64).tolist())
     return figs
 
 
@@ -94,11 +96,13 @@ def report_figures(capture: Capture, geometry, samples, fit: FitResult, results:
                    out_dir: str | Path) -> dict:
     """Every figure of the report; normal-map, BRDF-map and ground-truth extras into ``results``.
 
-    Returns figure key -> data URI, plus ``"panels"``: the :class:`.panels.Panels` of the
-    Inputs and Residuals sections (PNG tiles written from the arrays). A simulated capture's
-    ``ground_truth.json`` adds ``results["ground_truth"]`` (recovered vs true, z-scores;
-    :func:`.views.truth_comparison`). A BRDF-map measurement also writes ``albedo_map.exr``
-    (+ std. error) into ``out_dir``.
+    Returns figure key -> data URI of a plot, plus the images written from arrays
+    (:mod:`.panels`): ``"panels"`` (the :class:`.panels.Panels` of the Inputs and Residuals
+    sections), ``"lighting_latlong"`` (:func:`.panels.lighting_panels`), ``"relit_spheres"``
+    (:func:`.panels.relit_sphere_panels`), ``"albedo_map"`` (:func:`.panels.albedo_panels`).
+    A simulated capture's ``ground_truth.json`` adds ``results["ground_truth"]`` (recovered vs
+    true, z-scores; :func:`.views.truth_comparison`). A BRDF-map measurement also writes
+    ``albedo_map.exr`` (+ std. error) into ``out_dir``.
     """
     obs, ren, masks, titles = residual_images(capture, samples, fit.prediction)
     sil = [getattr(g, "hit", None) for g in geometry.views]  # registration overlay

@@ -2,8 +2,9 @@
 
 Used by :mod:`brdfcap.reports.assemble` when problem ``brdf-map`` measured the BRDF with
 :func:`brdfcap.fit.diligent_fit.measure_brdf` (DiLiGenT-layout captures, ``docs/diligent.md``).
-Figures are returned as matplotlib figures; :func:`attach_brdf_measurement` turns them into data
-URIs and writes the albedo map next to ``results.json``.
+Plots are returned as matplotlib figures; :func:`attach_brdf_measurement` turns them into data
+URIs, adds the albedo-map images (:func:`.panels.albedo_panels`, PNG from the arrays) and writes
+the albedo map next to ``results.json``.
 """
 
 from __future__ import annotations
@@ -16,37 +17,13 @@ import torch
 from brdfcap.capture.images import write_image
 from brdfcap.fit.sh import legendre_normalized
 
-from .figures import _log_positive, display_encode, fig_to_data_uri, plt, robust_figure
+from .figures import _log_positive, fig_to_data_uri, fixed_layout, new_figure, robust_figure
+from .panels import albedo_panels
 
-__all__ = ["albedo_map_figure", "brdf_slice_figure", "brdf_sh_figure", "attach_brdf_measurement",
+__all__ = ["brdf_slice_figure", "brdf_sh_figure", "attach_brdf_measurement",
            "attach_normal_map_info", "brdf_summary_lines"]
 
 _COLOURS = ("tab:red", "tab:green", "tab:blue")
-
-
-@robust_figure
-def albedo_map_figure(albedo_map: np.ndarray, stderr_map: np.ndarray | None = None):
-    """Recovered diffuse albedo ``k_d`` per pixel (linear values shown sRGB-encoded, white = 1).
-
-    ``albedo_map``: ``(H, W, 3)``, NaN where no pixel was fitted (shown black).
-    """
-    a = np.nan_to_num(albedo_map, nan=0.0)
-    ncol = 2 if stderr_map is not None else 1
-    fig, axes = plt.subplots(1, ncol, figsize=(3.4 * ncol, 3.2), squeeze=False)
-    axes[0, 0].imshow(display_encode(a, white=max(1.0, float(np.nanmax(albedo_map, initial=0)))))
-    axes[0, 0].set_title("diffuse albedo k_d (display-encoded, white = 1)", fontsize=8)
-    if stderr_map is not None:
-        ratio = stderr_map / np.where(albedo_map > 0, albedo_map, np.nan)
-        fitted = np.isfinite(ratio).any(-1)
-        rel = np.full(fitted.shape, np.nan)
-        rel[fitted] = np.nanmean(ratio[fitted], axis=-1)
-        im = axes[0, 1].imshow(rel, cmap="viridis")
-        axes[0, 1].set_title("relative std. error (mean over RGB)", fontsize=8)
-        fig.colorbar(im, ax=axes[0, 1], fraction=0.046)
-    for ax in axes.ravel():
-        ax.set_xticks([])
-        ax.set_yticks([])
-    return fig
 
 
 def _binned(x, y, edges):
@@ -71,7 +48,8 @@ def brdf_slice_figure(meas):
     measured ``(B - B_spec)/(E k_d/π)`` against ``n·ωi`` (ideal Lambertian: the identity).
     """
     p = meas.phong
-    fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.4))
+    fig = new_figure((9.0, 4.0))
+    axes = [fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)]
     x = np.clip(meas.slice_x, -1, 1)
     alpha = np.degrees(np.arccos(x))
     edges = np.linspace(0, 90, 46)
@@ -94,7 +72,7 @@ def brdf_slice_figure(meas):
     ax.set_ylabel("specular B / E (1/sr)")
     ax.set_title(f"specular slice: k_s = {np.round(p.ks, 4).tolist()}, s = {p.s:.4g}",
                  fontsize=8)
-    ax.legend(fontsize=6, ncol=1, loc="upper left", bbox_to_anchor=(0.0, -0.22))
+    ax.legend(fontsize=6, ncol=3, loc="upper left", bbox_to_anchor=(0.0, -0.17))
     ax = axes[1]
     cen, mean, sd = _binned(meas.diffuse_cos, meas.diffuse_y.mean(-1), np.linspace(0, 1, 26))
     if len(cen):
@@ -104,7 +82,7 @@ def brdf_slice_figure(meas):
     ax.set_ylabel("(B − B_spec) / (E k_d / π)")
     ax.set_title("diffuse slice (per-pixel albedo divided out)", fontsize=8)
     ax.legend(fontsize=7)
-    fig.tight_layout()
+    fixed_layout(fig, left=0.75, right=0.2, bottom=1.2, top=0.3, wspace=0.3)
     return fig
 
 
@@ -114,7 +92,8 @@ def brdf_sh_figure(sh):
 
     Ill-conditioned bands are shaded.
     """
-    fig, ax = plt.subplots(figsize=(8.6, 3.4))
+    fig = new_figure((8.6, 3.4))
+    ax = fig.add_subplot()
     ls = np.arange(sh.lmax + 1)
     zeros: list = []
     for c in range(sh.rho_hat.shape[1]):
@@ -135,8 +114,8 @@ def brdf_sh_figure(sh):
     ax.set_xlabel("band l")
     ax.set_ylabel("|ρ̂_l|")
     ax.set_title("SH-domain BRDF of the specular part (lighting known)", fontsize=9)
-    ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
-    fig.tight_layout()
+    leg = ax.legend(fontsize=6.5, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    fixed_layout(fig, left=0.75, legend=leg, right=0.25)
     return fig
 
 
@@ -198,7 +177,6 @@ def attach_brdf_measurement(figures: dict, meas, out_dir: str | Path) -> None:
                 attributes={"brdfcap:quantity": "diffuse albedo k_d (0 = not fitted)"})
     write_image(out / "albedo_stderr_map.exr", np.nan_to_num(meas.albedo_stderr_map, nan=0.0),
                 attributes={"brdfcap:quantity": "std. error of k_d, conditional on ks and s"})
-    figures["albedo_map"] = fig_to_data_uri(albedo_map_figure(meas.albedo_map,
-                                                              meas.albedo_stderr_map))
-    figures["brdf_slices"] = fig_to_data_uri(brdf_slice_figure(meas))
-    figures["brdf_sh"] = fig_to_data_uri(brdf_sh_figure(meas.sh))
+    figures["albedo_map"] = albedo_panels(meas.albedo_map, meas.albedo_stderr_map)
+    figures["brdf_slices"] = fig_to_data_uri(brdf_slice_figure(meas), tight=False)
+    figures["brdf_sh"] = fig_to_data_uri(brdf_sh_figure(meas.sh), tight=False)

@@ -1,4 +1,11 @@
-"""Matplotlib figures for the measurement report, returned as base64 PNG data URIs.
+"""Matplotlib plots for the measurement report, returned as base64 PNG data URIs.
+
+Only plots are drawn here (axes, lines, legends); images (inputs, residuals, lighting, re-lit
+spheres, albedo maps) are written straight from their arrays by :mod:`.panels`. The report's
+plots are :class:`matplotlib.figure.Figure` objects on an Agg canvas (no pyplot state) laid out
+with fixed margins in inches (:func:`fixed_layout`): ``tight_layout`` and
+``bbox_inches="tight"`` each measure every tick label in an extra draw, which doubled the
+cost of a plot (``docs/performance.md``).
 
 Images shown to the user are *display-encoded*: linear radiance divided by a robust white
 point (99th percentile) and encoded with the sRGB transfer function (:func:`srgb_encode`, the
@@ -19,12 +26,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402,F401
 import numpy as np  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 __all__ = ["fig_to_data_uri", "display_encode", "srgb_encode", "plain_text", "robust_figure",
            "failed_figure", "FIGURE_FAILURES", "thumbnails_figure", "residual_figure",
-           "spectrum_figure", "sh_radiance_latlong", "latlong_lighting_figure",
-           "relit_spheres_figure", "brdf_spec_from_results", "brdf_plots_figure",
-           "lighting_figures", "brdf_figures"]
+           "spectrum_figure", "sh_radiance_latlong", "brdf_spec_from_results",
+           "brdf_plots_figure", "brdf_figures", "new_figure", "fixed_layout"]
 
 
 _log = logging.getLogger("brdfcap.reports")
@@ -53,9 +61,31 @@ def _record_failure(name: str, exc: BaseException) -> str:
     return line
 
 
+def new_figure(figsize: tuple[float, float]) -> Figure:
+    """Make a figure on its own Agg canvas, outside pyplot (nothing to close, no global state)."""
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def fixed_layout(fig: Figure, *, left: float = 0.8, right: float = 0.2, bottom: float = 0.55,
+                 top: float = 0.35, legend=None, wspace: float | None = None) -> None:
+    """Place the axes with fixed margins in inches; room on the right for an outside ``legend``.
+
+    Replaces ``tight_layout``/``bbox_inches="tight"``, which lay out and measure every tick
+    label; only the legend (a few text lines) is measured here. Margins hold the fonts the
+    report's plots use (7–9 pt labels, one-line titles unless ``top`` says otherwise).
+    """
+    w, h = fig.get_size_inches()
+    if legend is not None:
+        right += legend.get_window_extent(fig.canvas.get_renderer()).width / fig.dpi
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
+                        wspace=wspace)
+
+
 def failed_figure(name: str, reason: str):
     """Draw a placeholder figure that says which figure failed and why (mathtext off)."""
-    fig = plt.figure(figsize=(6.0, 1.2))
+    fig = new_figure((6.0, 1.2))
     fig.text(0.02, 0.5, f"Figure '{name}' could not be drawn:\n{reason}", fontsize=8,
              va="center", ha="left", wrap=True, parse_math=False, color="tab:red")
     return fig
@@ -72,29 +102,31 @@ def robust_figure(func):
         try:
             return func(*args, **kwargs)
         except Exception as exc:  # noqa: BLE001 - any drawing failure; the fit stays valid
-            plt.close("all")
             return failed_figure(func.__name__, _record_failure(func.__name__, exc))
     return wrapper
 
 
-def _png(fig) -> bytes:
+def _png(fig, tight: bool = True) -> bytes:
     buf = io.BytesIO()
     try:
-        fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+        fig.savefig(buf, format="png", dpi=90, bbox_inches="tight" if tight else None)
     finally:
-        plt.close(fig)
+        plt.close(fig)  # a pyplot figure (callers outside the report); no-op for new_figure's
     return buf.getvalue()
 
 
-def fig_to_data_uri(fig) -> str:
+def fig_to_data_uri(fig, tight: bool = True) -> str:
     """Render a figure to an embedded ``data:image/png;base64,...`` URI and close it.
+
+    ``tight``: crop to the drawn content (``bbox_inches="tight"``, one extra layout pass); the
+    report's plots are laid out by :func:`fixed_layout` and pass ``False``.
 
     Matplotlib parses text only when it draws, so a bad label fails here, not in the builder:
     such a failure is recorded (:data:`FIGURE_FAILURES`) and the URI of a placeholder that
     names the failure is returned instead.
     """
     try:
-        data = _png(fig)
+        data = _png(fig, tight)
     except Exception as exc:  # noqa: BLE001 - see robust_figure
         label = fig.get_label() or "figure"
         data = _png(failed_figure(label, _record_failure(label, exc)))
@@ -208,7 +240,8 @@ def spectrum_figure(bands: list[dict], energy: np.ndarray, energy_err: np.ndarra
     """
     lmax = energy.shape[0] - 1
     ls = np.arange(lmax + 1)
-    fig, ax = plt.subplots(figsize=(8.6, 3.4))
+    fig = new_figure((8.6, 3.4))
+    ax = fig.add_subplot()
     colours = ("tab:red", "tab:green", "tab:blue")
     zeros: list = []
     for c in range(energy.shape[1]):
@@ -234,9 +267,9 @@ def spectrum_figure(bands: list[dict], energy: np.ndarray, energy_err: np.ndarra
     ax.set_xticks(ls)
     ax.set_xlim(-0.5, lmax + 0.5)
     ax.tick_params(labelsize=8)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    leg = ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     ax.set_title("Per-band lighting spectrum", fontsize=9)
-    fig.tight_layout()
+    fixed_layout(fig, left=0.75, legend=leg, right=0.25)
     return fig
 
 
@@ -260,109 +293,6 @@ def sh_radiance_latlong(coefficients: np.ndarray, height: int = 64) -> np.ndarra
     T, P = torch.meshgrid(th, ph, indexing="ij")
     d = directions_from_angles(T, P)
     return (real_sh(d, lmax) @ c).numpy()
-
-
-def _truncate(coefficients: np.ndarray, lmax: int) -> np.ndarray:
-    return np.asarray(coefficients)[: (lmax + 1) ** 2]
-
-
-@robust_figure
-def latlong_lighting_figure(coefficients: np.ndarray, ill_from: int | None = None,
-                            height: int = 64):
-    """Recovered lighting as a lat-long image (display-encoded; negative ringing shown black).
-
-    With ``ill_from`` set, a second panel shows the lighting truncated to the determined bands
-    ``l < ill_from``: what the data actually say.
-    """
-    lmax = int(math.isqrt(len(coefficients))) - 1
-    panels = [(coefficients, f"all bands l ≤ {lmax}")]
-    if ill_from is not None and 0 < ill_from <= lmax:
-        panels.append((_truncate(coefficients, ill_from - 1),
-                       f"determined bands only, l ≤ {ill_from - 1}"))
-    imgs = [sh_radiance_latlong(c, height) for c, _ in panels]
-    pos = np.concatenate([np.clip(i, 0, None).ravel() for i in imgs])
-    white = float(np.percentile(pos[pos > 0], 99.5)) if np.any(pos > 0) else 1.0
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.0), squeeze=False)
-    for ax, img, (_, title) in zip(axes.ravel(), imgs, panels):
-        neg = float(np.mean(img < 0))
-        ax.imshow(display_encode(np.clip(img, 0, None), white),
-                  extent=(0, 360, 180, 0), aspect="equal")
-        ax.set_xlabel("φ (deg, from +x toward +y)", fontsize=8)
-        ax.set_ylabel("θ (deg, from +z)", fontsize=8)
-        ax.set_xticks([0, 90, 180, 270, 360])
-        ax.set_yticks([0, 45, 90, 135, 180])
-        ax.tick_params(labelsize=7)
-        ax.set_title(f"{title}; {100 * neg:.0f}% of directions < 0 (SH ringing)", fontsize=8)
-    fig.suptitle("Recovered lighting L(ω), world frame, lat-long", fontsize=9)
-    return fig
-
-
-def _sphere_view(n_px: int, view: np.ndarray, up: np.ndarray):
-    """Orthographic view of the unit sphere from direction ``view``: normals, hit mask, ωo."""
-    v = view / np.linalg.norm(view)
-    r = np.cross(up, v)
-    r /= np.linalg.norm(r)
-    u = np.cross(v, r)
-    s = (np.arange(n_px) + 0.5) / n_px * 2 - 1
-    X, Y = np.meshgrid(s, -s)
-    rr = X**2 + Y**2
-    hit = rr < 1
-    z = np.sqrt(np.clip(1 - rr, 0, None))
-    n = X[..., None] * r + Y[..., None] * u + z[..., None] * v
-    return n, hit, v
-
-
-@robust_figure
-def relit_spheres_figure(coefficients: np.ndarray, albedo=(1.0, 1.0, 1.0), n_px: int = 96):
-    """Spheres re-lit under the recovered lighting, seen from +x, +y and above (+z).
-
-    Top row: a Lambertian sphere with the capture's albedo, ``(a/π) E(n)``. Bottom row: a mirror
-    sphere, ``L(r)`` with ``r = 2 (n·ωo) n − ωo`` (the lighting itself, band-limited to lmax).
-    """
-    import torch
-    from brdfcap.fit.render import irradiance_sh
-    from brdfcap.fit.sh import real_sh
-
-    c = torch.as_tensor(np.asarray(coefficients, np.float64))
-    lmax = int(math.isqrt(c.shape[0])) - 1
-    alb = np.asarray(albedo, np.float64)
-    views = [("from +x", np.array([1.0, 0, 0]), np.array([0, 0, 1.0])),
-             ("from +y", np.array([0, 1.0, 0]), np.array([0, 0, 1.0])),
-             ("from above (+z)", np.array([0, 0, 1.0]), np.array([0, 1.0, 0]))]
-    diffuse, mirror, hits = [], [], []
-    for _, v, up in views:
-        n, hit, wo = _sphere_view(n_px, v, up)
-        nt = torch.as_tensor(n[hit])
-        d = np.zeros((n_px, n_px, c.shape[1]))
-        d[hit] = (irradiance_sh(nt, c) / math.pi).numpy() * alb
-        refl = 2 * (nt @ torch.as_tensor(wo))[:, None] * nt - torch.as_tensor(wo)
-        m = np.zeros_like(d)
-        m[hit] = (real_sh(refl, lmax) @ c).numpy()
-        diffuse.append(d)
-        mirror.append(m)
-        hits.append(hit)
-    fig, axes = plt.subplots(2, 3, figsize=(6.6, 4.6))
-    for row, imgs, name in ((0, diffuse, "Lambertian"), (1, mirror, "mirror")):
-        pos = np.concatenate([np.clip(i[h], 0, None).ravel() for i, h in zip(imgs, hits)])
-        white = float(np.percentile(pos[pos > 0], 99)) if np.any(pos > 0) else 1.0
-        for col, (img, (title, _, _)) in enumerate(zip(imgs, views)):
-            ax = axes[row, col]
-            ax.imshow(display_encode(np.clip(img, 0, None), white))
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if row == 0:
-                ax.set_title(title, fontsize=8)
-            if col == 0:
-                ax.set_ylabel(name, fontsize=8)
-    fig.suptitle("Spheres re-lit under the recovered lighting (world +z up)", fontsize=9)
-    return fig
-
-
-def lighting_figures(coefficients: np.ndarray, ill_from: int | None,
-                     albedo=(1.0, 1.0, 1.0)) -> dict[str, str]:
-    """Render the lighting figures as data URIs ``{"lighting_latlong", "relit_spheres"}``."""
-    return {"lighting_latlong": fig_to_data_uri(latlong_lighting_figure(coefficients, ill_from)),
-            "relit_spheres": fig_to_data_uri(relit_spheres_figure(coefficients, albedo))}
 
 
 # --------------------------------------------------------------------------------------------
@@ -423,7 +353,7 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     wi = torch.as_tensor(np.stack([-np.sin(ti), np.zeros_like(ti), np.cos(ti)], -1))
     m = spec.brdf
     delta = m._c(m.scale_parameter, n).numpy() if m.delta and m.has_specular else None
-    fig = plt.figure(figsize=(10.0, 3.8))
+    fig = new_figure((10.0, 3.8))
     ax1 = fig.add_subplot(1, 2, 1)
     ax2 = fig.add_subplot(1, 2, 2, projection="polar")
     colours = ("tab:red", "tab:green", "tab:blue")
@@ -467,8 +397,9 @@ def brdf_plots_figure(spec, theta_o_deg=(0.0, 30.0, 60.0)):
     ax2.tick_params(labelsize=7)
     handles, labels = ax2.get_legend_handles_labels()
     fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=len(labels),
-               bbox_to_anchor=(0.5, -0.02), frameon=False)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+               bbox_to_anchor=(0.5, 0.0), frameon=False)
+    fixed_layout(fig, left=0.7, right=0.3, bottom=0.75, top=0.65 if delta is not None else 0.45,
+                 wspace=0.3)
     return fig
 
 
@@ -477,4 +408,4 @@ def brdf_figures(brdf: dict) -> dict[str, str]:
     spec = brdf_spec_from_results(brdf)
     if spec is None:
         return {}
-    return {"brdf_plots": fig_to_data_uri(brdf_plots_figure(spec))}
+    return {"brdf_plots": fig_to_data_uri(brdf_plots_figure(spec), tight=False)}

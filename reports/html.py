@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,7 @@ from .views import (
     truth_rows,
 )
 
-__all__ = ["ReportInputs", "render_report", "write_report"]
+__all__ = ["ReportInputs", "render_report", "write_report", "report_template"]
 
 
 @dataclass
@@ -89,12 +90,23 @@ def _image_tables(images: list[dict]) -> tuple[list[str], dict[str, dict]]:
     return keys, nested
 
 
+@functools.lru_cache(maxsize=1)
 def _env() -> jinja2.Environment:
+    """Return the report's template environment, built once per process.
+
+    jinja2 caches compiled templates per environment: one environment means the report
+    template is compiled on the first report only (and again if the file changes).
+    """
     return jinja2.Environment(
         loader=jinja2.FileSystemLoader(str(Path(__file__).parent / "templates")),
         autoescape=jinja2.select_autoescape(["html"]),
         undefined=jinja2.StrictUndefined,
     )
+
+
+def report_template() -> jinja2.Template:
+    """Return the compiled ``report.html`` template (compiled on the first call per process)."""
+    return _env().get_template("report.html")
 
 
 def render_report(inp: ReportInputs) -> str:
@@ -129,12 +141,11 @@ def render_report(inp: ReportInputs) -> str:
         "panels": inp.figures.get("panels"),
         "n_images": len(r.get("images") or []),
     }
-    tpl = _env().get_template("report.html")
-    return tpl.render(r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings,
-                      v=views, chain_keys=keys, chain_common=common, per_view=per_view,
-                      fmt=_fmt, fmt_pm=fmt_pm,
-                      fmt_rgb=fmt_rgb, fmt_rgb_pm=fmt_rgb_pm, fmt_band=fmt_band,
-                      fmt_num=fmt_num, extras=inp.extras)
+    return report_template().render(
+        r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings, v=views,
+        chain_keys=keys, chain_common=common, per_view=per_view, fmt=_fmt, fmt_pm=fmt_pm,
+        fmt_rgb=fmt_rgb, fmt_rgb_pm=fmt_rgb_pm, fmt_band=fmt_band, fmt_num=fmt_num,
+        extras=inp.extras)
 
 
 def write_report(path: str | Path, inp: ReportInputs) -> Path:

@@ -149,6 +149,8 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
     """
     from distributed import Client
 
+    from .worker_setup import IgnoreSigint, WarmUp  # imports distributed's plugin base
+
     # the client logs a traceback when the scheduler goes away; brdfcap says it in one line
     client_log = logging.getLogger("distributed.client")
     old_level = client_log.level
@@ -187,9 +189,8 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
                     f"'if __name__ == \"__main__\":' around it (workers import the script)"
                 ) from None
             client = Client(cluster)
-            from .worker_setup import IgnoreSigint  # imports distributed's plugin base
-
             client.register_plugin(IgnoreSigint())
+        client.register_plugin(WarmUp())  # once per worker, also for workers that join later
     except BrdfcapError:
         if cluster is not None:
             cluster.close()
