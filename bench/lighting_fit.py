@@ -29,6 +29,9 @@ import sys
 import time
 from pathlib import Path
 
+import brdfcap  # noqa: F401  before torch: sets OMP_WAIT_POLICY as a brdfcap run does
+
+# isort: split
 import torch
 from brdfcap.capture.probes import read_envmap
 from brdfcap.fit.brdf_models import BRDFSpec
