@@ -158,10 +158,13 @@ def lighting_design(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tenso
         # by all channels, channel c scaled by ks[c] — one Gram instead of one per channel
         t = kd[0] / ks[0]
 
-        def both(s: int, e: int) -> torch.Tensor:
-            return sh_n(s, e, lmax) * (fd * t) + sh_r(s, e, lmax) * fs
+        def both(s: int, e: int, out: torch.Tensor | None = None) -> torch.Tensor:
+            # written into ``out`` (a slice of the kept table, LiveRows) when given: no
+            # temporaries and no copy of the chunk (~1 s CPU of a 309k-sample Phong fit at L=24)
+            out = torch.mul(sh_n(s, e, lmax), fd * t, out=out)
+            return out.addcmul_(sh_r(s, e, lmax), fs)
 
-        return _tag(both, live, LiveRows(both, live, n, keep)), ks
+        return _tag(both, live, LiveRows(both, live, n, keep, into=True)), ks
 
     def design_(s: int, e: int) -> torch.Tensor:
         a = (sh_n(s, e, lmax) * fd)[:, None, :] * kd[None, :, None]
@@ -235,12 +238,15 @@ class LiveRows:
     and every pass over the samples then slices it: the design is evaluated once per solve,
     not once per pass. The table is filled ``chunk`` rows at a time: 4096 rows of the full
     rows stay in cache (20 MB at L = 24), 40-45% less CPU time than 32768 rows (measured,
-    65k samples at L = 24, Lambertian and Phong designs, one thread).
+    65k samples at L = 24, Lambertian and Phong designs, one thread). ``into``: every column
+    is live and ``design(s, e, out=...)`` writes its rows straight into the table's slice.
     """
 
     def __init__(self, design, live: torch.Tensor, n: int, keep: int = 0, rows=None,
-                 lmax: int = 0, filt: torch.Tensor | None = None, chunk: int = 4096):
+                 lmax: int = 0, filt: torch.Tensor | None = None, chunk: int = 4096,
+                 into: bool = False):
         self.design, self.n, self.keep, self.chunk = design, n, keep, chunk
+        self.into = into  # design(s, e, out=...) writes its rows into out
         self.width = int(live.sum())
         self.runs, start = [], None  # [start, stop) of each run of live columns
         for i, v in enumerate(live.tolist() + [False]):
@@ -254,6 +260,8 @@ class LiveRows:
 
     def _rows_into(self, out: torch.Tensor | None, s: int, e: int) -> torch.Tensor:
         """Rows ``s:e`` of the live columns, written into ``out`` (new when ``None``)."""
+        if self.into and out is not None and self.runs == [(0, out.shape[1])]:
+            return self.design(s, e, out=out)
         full = self.design(s, e) if self.rows is None else self.rows(s, e, self.lmax)
         if self.rows is None and self.runs == [(0, full.shape[1])]:
             if out is None:
