@@ -431,6 +431,9 @@ class BayesExtras:
 #: column panels (3/4 of the products): 16% less CPU at 625 columns, 9% more at 328 (one
 #: thread, 32768 rows; below, one product runs nearer the BLAS's peak).
 PANEL_GRAM_COLUMNS = 512
+#: Rows of the design weighted at a time in :func:`_weighted_gram` (one reused buffer of
+#: ``GRAM_WORK_ROWS × K``: 20 MB at K = 625, below glibc's 32 MiB mmap threshold).
+GRAM_WORK_ROWS = 4096
 
 
 def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
@@ -445,9 +448,10 @@ def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
     found by scanning the block. One matrix product over the live columns, or two column
     panels of the lower triangle from :data:`PANEL_GRAM_COLUMNS` columns up (thinner blocks
     run below the BLAS's peak); the lower triangle is mirrored so the Gram is exactly
-    symmetric. ``work``: a float64 buffer of at least ``(n, K)`` for the weighted rows, reused
-    across chunks (a fresh ``n × K`` block above glibc's mmap threshold, 32 MiB, is mapped and
-    page-faulted on every chunk: ~25% of a 309k × 234 Gram's CPU time, measured).
+    symmetric. ``work``: a float64 buffer ``(r, ≥ K)`` for the weighted rows, reused across
+    chunks; the block is then taken ``r`` rows at a time, each product added into the Gram (a
+    fresh ``n × K`` temporary above glibc's mmap threshold, 32 MiB, is mapped and page-faulted
+    on every chunk; :data:`GRAM_WORK_ROWS` rows stay far below it).
     """
     k = a.shape[1]
     if live is None:
@@ -461,17 +465,18 @@ def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
         return torch.zeros(k, k, dtype=torch.float64, device=a.device)
     az = a if kz == k else a[:, nz]
     n = az.shape[0]
-    if work is not None and work.shape[0] >= n and work.shape[1] >= kz:
-        aw = torch.mul(az, wcol, out=work[:n, :kz])
-    else:
-        aw = az * wcol
-    if kz >= PANEL_GRAM_COLUMNS:  # lower triangle in two column panels: 3/4 of the flops
-        h = kz // 2
-        gz = az.new_empty(kz, kz)
-        gz[:, :h] = aw.T @ az[:, :h]
-        gz[h:, h:] = aw[:, h:].T @ az[:, h:]
-    else:
-        gz = aw.T @ az
+    step = n if work is None or work.shape[1] < kz else work.shape[0]
+    gz = az.new_zeros(kz, kz)
+    h = kz // 2 if kz >= PANEL_GRAM_COLUMNS else kz  # two panels: 3/4 of the flops
+    for s in range(0, n, step):
+        blk = az[s:s + step]
+        if step == n:
+            aw = blk * wcol
+        else:
+            aw = torch.mul(blk, wcol[s:s + step], out=work[:blk.shape[0], :kz])
+        gz[:, :h].addmm_(aw.T, blk[:, :h])
+        if h < kz:
+            gz[h:, h:].addmm_(aw[:, h:].T, blk[:, h:])
     gz = torch.tril(gz) + torch.tril(gz, -1).T
     if kz == k:
         return gz
@@ -550,7 +555,7 @@ def _accumulate(design, b, w, cs, chunk, split, live=None):
             k = a.shape[-1]
             halves = (torch.zeros(2, nch, k, k, dtype=torch.float64, device=b.device),
                       torch.zeros(2, nch, k, dtype=torch.float64, device=b.device))
-            work = a.new_empty((min(chunk, n), k))
+            work = a.new_empty((min(chunk, n, GRAM_WORK_ROWS), k))
         for h, rows in _half_ranges(split, s, e):
             ah, wh, wb = a[rows], w[s:e][rows], wb_all[s:e][rows]
             if ah.ndim == 2 and alpha is not None:
