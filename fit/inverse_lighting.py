@@ -387,9 +387,12 @@ def _more_bandwidths(spec: BRDFSpec, sol, l0: int, cap: int, noise_known: bool,
     :data:`TRUNCATION_NOISE_FRACTION` and only that one (and ``l0``) is compared by the
     evidence. Otherwise (no noise model, or an excess too small to be truncation, so the
     structure has another cause): ``l0``, the midpoint to ``cap`` and ``cap``, as before.
+    Only for a design without a specular part (:func:`design_used` ``"none"``): a glossy
+    fit's excess also holds the specular model's own error (R&H's reflection-space form, the
+    lobe's horizon), which more bands do not remove; it keeps the evidence's candidates.
     """
     bx = sol.bayes
-    if noise_known:
+    if noise_known and design_used(spec, design) == "none":
         excess = bx.noise_scale - 1.0
         if bool((excess > TRUNCATION_NOISE_FRACTION).any()):
             return sorted({l0, truncation_lmax(spec, excess, bx.slope, l0, cap, design)})
