@@ -15,6 +15,7 @@ Examples::
 
     python bench/lighting_fit.py                   # issue 12/18 target rows + cold start: ~2 min
     python bench/lighting_fit.py --markdown t.md   # the same, also written as markdown
+    python bench/lighting_fit.py --design rh       # Phong row with R&H's reflection-space design
     python bench/lighting_fit.py --lmax 2,8        # sweep: bayes vs tikhonov, 6 views of 128²
     python bench/lighting_fit.py --size 256 --lmax 8,16 --markdown table.md   # sweep, 309k
 """
@@ -29,6 +30,9 @@ import sys
 import time
 from pathlib import Path
 
+import brdfcap  # noqa: F401  before torch: sets OMP_WAIT_POLICY as a brdfcap run does
+
+# isort: split
 import torch
 from brdfcap.capture.probes import read_envmap
 from brdfcap.fit.brdf_models import BRDFSpec
@@ -153,10 +157,11 @@ def targets(args):
     for name, views, size, model, lmax, goal in TARGETS:
         spec = LAMBERTIAN if model == "lambertian" else PHONG
         n, r, view, bn, var = capture(spec, views, size, d, lw)
-        fit_lighting(n[:2000], bn[:2000], 2, spec, reflected=r[:2000], variance=var[:2000])
+        fit_lighting(n[:2000], bn[:2000], 2, spec, reflected=r[:2000], variance=var[:2000],
+                     design=args.design)
         reps = args.repeat if n.shape[0] > 100_000 else max(args.repeat, 3)
         f, wall, cpu = timed(lambda: fit_lighting(n, bn, lmax, spec, reflected=r, variance=var,
-                                                  view=view), reps)
+                                                  view=view, design=args.design), reps)
         err = band_error(f, truth[:(lmax + 1) ** 2], lmax)
         rows.append(f"| {name} | {n.shape[0]} | {lmax} | {f.internal_lmax} | {wall:.3g} | "
                     f"{cpu:.3g} | {goal:g} | {'yes' if wall <= goal else 'no'} | {err:.3g} | "
@@ -186,7 +191,8 @@ def sweep(args):
         for lmax in lmaxes:
             for method in ("bayes", "tikhonov"):
                 f, dt, _ = timed(lambda: fit_lighting(n, bn, lmax, spec, reflected=r,
-                                                      variance=var, view=view, method=method),
+                                                      variance=var, view=view, method=method,
+                                                      design=args.design),
                                  args.repeat)
                 k = (lmax + 1) ** 2
                 err = band_error(f, truth[:k], lmax)
@@ -205,6 +211,8 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=128, help="sweep: image side")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=1, help="best of this many runs")
+    ap.add_argument("--design", default="exact", choices=("exact", "rh"),
+                    help="specular forward model of the Phong fits (fit_lighting design)")
     ap.add_argument("--markdown", type=Path, default=None)
     ap.add_argument("--cold-child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -214,7 +222,8 @@ def main(argv=None):
     rows = targets(args) if args.lmax is None else sweep(args)
     head = (f"{args.threads} threads, torch {torch.__version__}, best of {args.repeat} "
             f"(target rows under 100k samples: of at least 3); "
-            f"`python bench/lighting_fit.py{'' if args.lmax is None else ' --lmax ' + args.lmax}`")
+            f"`python bench/lighting_fit.py{'' if args.lmax is None else ' --lmax ' + args.lmax}"
+            f" --threads {args.threads} --design {args.design}`")
     text = head + "\n\n" + "\n".join(rows) + "\n"
     print(text)
     if args.markdown:
