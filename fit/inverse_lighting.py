@@ -34,7 +34,18 @@ from .conditioning import (
     suggest_lmax,
     weak_prior_variance,
 )
-from .exact_design import DESIGNS, ExactRows, exact_design_applies
+from .exact_design import (
+    DESIGNS,
+    TABLE_ANGLES,
+    ExactRows,
+    _lobe_extent_full,
+    _nodes,
+    exact_design_applies,
+    horizon_clamped,
+    lobe_bandwidth,
+    lobe_extent,
+    node_counts,
+)
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
@@ -42,7 +53,9 @@ from .solve import apply_design, noise_weights, restrict, solve_bayes, solve_wls
 
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
            "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
-           "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION"]
+           "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
+           "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
+           "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -54,6 +67,19 @@ INTERNAL_LMAX_CAP = 24
 TRUNCATION_NOISE_FRACTION = 0.1
 #: Scan-order blocks alternated between the two halves when there is only one view.
 SPLIT_BLOCKS = 16
+#: Truncation-noise term (exact specular design): at most this many re-solves with τ²
+#: re-estimated from the new residual (``docs/fitting.md``, "Truncation noise").
+TRUNCATION_ITERATIONS = 2
+#: ... stopping once τ² changes by less than this fraction in every channel.
+TRUNCATION_TOL = 0.25
+#: Internal band raised once (up to :data:`TRUNCATION_LMAX_CAP` and ``K ≤ N``) when the
+#: truncation variance exceeds :data:`TRUNCATION_REL` of the noise variance on the median sample
+#: (:data:`TRUNCATION_QUANTILE`): white truncation noise overstates the error of the low bands
+#: (the bands above L are nearly orthogonal to them over a well-covered sphere), so it is kept
+#: to where no finite L removes it — the rim, where the horizon cuts the lobe.
+TRUNCATION_REL = 0.1
+TRUNCATION_QUANTILE = 0.5
+TRUNCATION_LMAX_CAP = 40
 
 
 #: Most entries (N × K, float64) of one kept table of SH rows (:class:`SHRows`) whatever the
@@ -410,6 +436,157 @@ def _split_halves(n: int, view: torch.Tensor | None, good: torch.Tensor) -> torc
     return (torch.arange(n) * SPLIT_BLOCKS // max(n, 1)) % 2
 
 
+def _symmetric_tail(spec: BRDFSpec, design: str, top: int = 400) -> torch.Tensor:
+    r"""``T(L) = Σ_{l>L} (2l+1)/(4π) f_l²`` of the normal-exitance filter, ``(top+1,)``.
+
+    R&H's addition theorem for a lobe radially symmetric about ``r`` (``Σ_m Y_lm(r)² =
+    (2l+1)/(4π)``; ``f_l`` as in R&H 2001 eqs. 18–20, seed eqs. 4–5): the kernel's power
+    above ``L``, used only for its decay in ``L`` (:data:`TRUNCATION_REL`).
+    """
+    f = _specular_filter(spec, top, design).abs()
+    l = torch.arange(top + 1, dtype=torch.float64)
+    p = (2 * l + 1) / (4 * math.pi) * f ** 2
+    tail = p.flip(0).cumsum(0).flip(0) - p
+    return tail.clamp_min(1e-300 * float(p.max().clamp_min(1e-300)))
+
+
+def kernel_power(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
+                 angles: int = TABLE_ANGLES) -> torch.Tensor:
+    r"""``∫ k_{c,p}(ω)² dω`` of each sample's whole transfer kernel, ``(N, C)`` (Parseval side).
+
+    ``k_{c,p}(ω) = kd_c max(n·ω, 0)/π + f_c(n, ω, ωo) max(n·ω, 0)`` is what sample ``p`` of
+    channel ``c`` integrates against the lighting (R&H 2001 eq. 1); its SH coefficients are the
+    row of the exact design, so ``∫ k² − Σ_{l≤L} ‖D_{p,l}‖²`` is the kernel's power above the
+    internal band (:func:`truncation_power`). The diffuse square is ``2 kd²/(3π)`` exactly; the
+    specular square and the cross term by the exact design's own rule
+    (:mod:`brdfcap.fit.exact_design`, nodes for twice the lobe's bandwidth: ``k²`` carries it)
+    on a canonical sample per exitance angle ``γ`` (``n = z``; an isotropic kernel's ``∫ k²``
+    depends on ``γ`` alone), ``angles`` uniform ``γ`` interpolated per sample by 4-point
+    Lagrange, as the rotated rows are.
+    """
+    model = spec.brdf
+    dt = torch.float64
+    n = normal.to(dt)
+    cg = (n * reflected.to(dt)).sum(-1).clamp(0.0, 1.0)
+    gam = torch.arccos(cg)
+    gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
+    grid = torch.linspace(0.0, gmax, angles, dtype=dt)
+    z = torch.zeros_like(grid)
+    cn = torch.stack([z, z, torch.ones_like(grid)], -1)
+    cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
+    cwo = torch.stack([torch.sin(grid), z, torch.cos(grid)], -1)
+    clip = horizon_clamped(model)
+    th = lobe_extent(model) if clip else _lobe_extent_full(model)
+    lb = lobe_bandwidth(model)
+    nt, nphi = node_counts(max(lmax, lb), lb, th)
+    kd = spec.kd.to(dt)
+    table = (2.0 * kd ** 2 / (3.0 * math.pi)).expand(angles, kd.numel()).clone()
+    step = max(1, (1 << 22) // (2 * nt * nphi))
+    for s in range(0, angles, step):
+        e = min(s + step, angles)
+        d, w = _nodes(cn[s:e], cr[s:e], th, nt, nphi, clip)
+        p, m = d.shape[:2]
+        f = model.eval_specular_cos(cn[s:e, None].expand(p, m, 3).reshape(-1, 3),
+                                    d.reshape(-1, 3),
+                                    cwo[s:e, None].expand(p, m, 3).reshape(-1, 3))
+        f = f.reshape(p, m, -1).to(dt)
+        cos = d[..., 2].clamp_min(0.0)
+        table[s:e] += torch.einsum("pm,pmc->pc", w, f * f) \
+            + 2.0 * kd / math.pi * torch.einsum("pm,pmc->pc", w * cos, f)
+    if angles < 4:
+        return table[torch.zeros_like(gam, dtype=torch.long)]
+    u = gam / (gmax / (angles - 1))
+    i0 = (u.floor().long() - 1).clamp(0, angles - 4)
+    t = u - i0.to(dt)
+    wts = torch.ones(gam.shape[0], 4, dtype=dt)
+    for j in range(4):
+        for k in range(4):
+            if k != j:
+                wts[:, j] = wts[:, j] * (t - k) / (j - k)
+    return (table[i0[:, None] + torch.arange(4)] * wts[..., None]).sum(1)
+
+
+def truncation_power(design, scale: torch.Tensor | None, power: torch.Tensor,
+                     chunk: int = 32768) -> torch.Tensor:
+    r"""``t_{p,c} = ∫ k² − Σ_{l≤L} Σ_m D_{p,c,lm}²``: each sample's kernel power above ``L``.
+
+    Parseval on the sphere: the kernel's power in all bands is ``∫ k²`` (``power``, from
+    :func:`kernel_power`), the design row holds its bands ``≤ L``. For a lobe radially
+    symmetric about ``r`` and above the horizon this is R&H's addition theorem,
+    ``Σ_m D_lm(p)² = (2l+1)/(4π) f_l²`` (``f_l = Λ_l ρ̂_l``, R&H 2001 eqs. 18–20, seed
+    eqs. 4–5), summed over ``l > L``; where the horizon cuts the lobe (``n·ωi > 0``: the rim
+    of a sphere) the cut kernel is not band-limited and ``t_p`` is far larger than that closed
+    form — no finite ``L`` removes it. ``(N, C)``, clamped at 0 (rounding where the lobe is
+    band-limited).
+    """
+    n = power.shape[0]
+    out = torch.empty_like(power)
+    for s in range(0, n, chunk):
+        e = min(s + chunk, n)
+        a = design(s, e).to(torch.float64)
+        if a.ndim == 2:
+            q = (a * a).sum(-1)[:, None]
+            q = q * (1.0 if scale is None else scale.to(q) ** 2)
+        else:
+            q = (a * a).sum(-1)
+        out[s:e] = power[s:e] - q
+    return out.clamp_min(0.0)
+
+
+def _ml_scale(r2: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> float:
+    """``x ≥ 0`` maximising ``Σ −½[log v + r²/v]``, ``v = a + x b`` (a 1-D grid, then refined)."""
+    keep = b > 0
+    if not bool(keep.any()):
+        return 0.0
+    x0 = float((r2[keep] / b[keep]).mean())
+    if not x0 > 0:
+        return 0.0
+
+    def ll(xs: torch.Tensor) -> torch.Tensor:
+        out = torch.empty_like(xs)
+        for i in range(0, xs.numel(), 16):
+            v = a[None] + xs[i:i + 16, None] * b[None]
+            out[i:i + 16] = -0.5 * (torch.log(v) + r2[None] / v).sum(-1)
+        return out
+
+    lx = torch.linspace(-12.0, 2.0, 141, dtype=torch.float64)
+    xs = x0 * 10.0 ** lx
+    cand = torch.cat([xs.new_zeros(1), xs]) if bool((a > 0).all()) else xs
+    vals = ll(cand)
+    best = int(torch.argmax(vals))
+    if float(cand[best]) == 0.0:
+        return 0.0
+    c = math.log10(float(cand[best]))
+    fine = 10.0 ** torch.linspace(c - 0.1, c + 0.1, 21, dtype=torch.float64)
+    return float(fine[int(torch.argmax(ll(fine)))])
+
+
+def truncation_scale(residual: torch.Tensor, variance: torch.Tensor, t: torch.Tensor,
+                     noise_known: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""Per channel ``(τ², s)``: the truncation-noise level and the noise scale, by ML.
+
+    Likelihood of each residual ``r_p ~ N(0, s var_p + τ² t_p)`` (``t_p`` from
+    :func:`truncation_power`): ``τ²`` is the lighting's power per SH coefficient above the
+    internal band, taken flat there (a texel probe's spectrum is; a falling one makes the term
+    conservative), maximised on the residual of the current fit (a profile, type-II-like
+    estimate). ``s = 1`` with a noise model; without one ``s`` and ``τ²`` alternate.
+    """
+    nch = residual.shape[1]
+    tau = torch.zeros(nch, dtype=torch.float64)
+    scl = torch.ones(nch, dtype=torch.float64)
+    for c in range(nch):
+        m = torch.isfinite(variance[:, c]) & (variance[:, c] > 0) & \
+            torch.isfinite(residual[:, c])
+        r2, v, tc = residual[m, c] ** 2, variance[m, c], t[m, c]
+        if not r2.numel():
+            continue
+        for _ in range(1 if noise_known else 4):
+            tau[c] = _ml_scale(r2, scl[c] * v, tc)
+            if not noise_known:
+                scl[c] = max(_ml_scale(r2, tau[c] * tc, v), 1e-300)
+    return tau, scl
+
+
 def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
                  brdf: BRDFSpec | None = None, reflected: torch.Tensor | None = None,
                  variance: torch.Tensor | None = None, rule: str = "gcv",
@@ -644,6 +821,13 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     def scan(x):
         return x if inv is None else x[inv]
 
+    def solve_weighted(w_, lint_, src_):
+        d_, cs_ = lighting_design(spec, n, r, lint_, tables, limit, design)
+        return in_scan_order(solve_bayes(d_, b, w_, band_of_index(lint_).to(n.device),
+                                         noise_known=noise_known, noise_source=src_,
+                                         chunk=chunk, channel_scale=cs_, split=split,
+                                         bandwidths=[lint_]))
+
     first = None  # (solution, its adequacy): reused below when nothing was solved after it
     if lmax_internal is not None:
         full, cscale = solve_to([max(int(lmax_internal), lrep)])
@@ -670,6 +854,62 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         full = in_scan_order(solve_bayes(design_f, b, w, band, noise_known=True,
                                          noise_source=src + " (IRLS at the fit)", chunk=chunk,
                                          channel_scale=cscale, split=split, bandwidths=cands))
+    truncation = None
+    if exact and r is not None:
+        # the lighting above L passed by each sample's kernel is noise to a model truncated at
+        # L (docs/fitting.md, "Truncation noise"): variance τ² t_p added to the noise model;
+        # L is raised while that term exceeds TRUNCATION_REL of the noise on the median
+        # sample (the rim, where the horizon cuts the lobe, never falls: it keeps the term)
+        lcap = max(lint, min(TRUNCATION_LMAX_CAP, _sample_cap(nsamp, spec, design)))
+        var0 = torch.where(w > 0, 1.0 / w.clamp_min(1e-300), torch.full_like(w, math.inf))
+        used = (w > 0).any(-1)
+
+        def residual():
+            return full.bayes.residual if perm is None else full.bayes.residual[perm]
+
+        t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
+        tau, scl = truncation_scale(residual(), var0, t, noise_known)
+        ratio = (tau[None, :] * t * w / scl[None, :]).amax(-1)
+        share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
+        if lint < lcap and share > TRUNCATION_REL:
+            # one step up, predicted from the lobe's normal-exitance tail (R&H's addition
+            # theorem), aimed 10x below the limit: oblique lobes decay slower, and τ² grows
+            # with L as the rim (cut lobes, heavy-tailed) comes to dominate it
+            tail = _symmetric_tail(spec, design)
+            need = share * tail[lint + 1:lcap + 1] / tail[lint]
+            ok = torch.nonzero(need <= 0.1 * TRUNCATION_REL).flatten()
+            lint = lint + 1 + (int(ok[0]) if ok.numel() else lcap - lint - 1)
+            cands = [lint]
+            band = band_of_index(lint).to(n.device)
+            design_f, _ = lighting_design(spec, n, r, lint, tables, limit, design)
+            t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
+        w_t = w
+        for it in range(TRUNCATION_ITERATIONS):
+            if not bool((tau[None, :] * t * w > 1e-3).any()):
+                break  # below a thousandth of the noise everywhere: the noise model alone
+            w_t = torch.where(w > 0, 1.0 / (scl[None, :] * var0 + tau[None, :] * t),
+                              torch.zeros_like(w))
+            full = solve_weighted(w_t, lint, src + " + truncation noise")
+            if it == TRUNCATION_ITERATIONS - 1:
+                break
+            new, scl = truncation_scale(residual(), var0, t, noise_known)
+            done = bool(((new - tau).abs() <= TRUNCATION_TOL * tau.clamp_min(1e-300)).all())
+            tau = new
+            if done:
+                break
+        ratio = (tau[None, :] * t * w / scl[None, :]).amax(-1)
+        share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
+        if w_t is not w:
+            w = w_t
+            dom = int((ratio > 1.0).sum())
+            truncation = {
+                "tau2": tau.tolist(), "internal_lmax": lint, "samples_dominated": dom,
+                "quantile_ratio": share, "max_variance_ratio": float(ratio.max()),
+                "text": (f"noise model plus the lighting above L = {lint} passed by each "
+                         f"sample's kernel: variance tau2 * t_p (t_p the kernel's power above L "
+                         f"by Parseval, tau2 the lighting's power per SH coefficient above L by "
+                         f"maximum likelihood on the residual); it exceeds the noise on {dom} "
+                         f"of {w.shape[0]} samples")}
     filt = _band_filter(spec, lint, design)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)
@@ -685,6 +925,11 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         adequacy = first[1]
     else:
         adequacy = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
+    adequacy["truncation"] = truncation
+    if truncation is not None:
+        adequacy["verdict"] += (f" (with truncation noise: the lighting above L = {lint} that "
+                                f"each pixel's lobe passes, {truncation['samples_dominated']} "
+                                f"samples dominated by it)")
     widen2 = adequacy["widen"] ** 2
     s_k = infl.to(sol.band.device)[sol.band].sqrt().T  # (C, K) split-half (Birge) widening
     cov = sol.covariance * widen2 * s_k[:, :, None] * s_k[:, None, :]
