@@ -52,7 +52,7 @@ import torch
 from scipy.special import roots_legendre
 
 from .brdf.base import BRDFModel, orthonormal_basis
-from .rotation import wigner_d_real_blocks
+from .rotation import zyz_angles, zyz_rotator
 from .sh import real_sh
 
 __all__ = ["ExactRows", "exact_rows", "horizon_clamped", "exact_rows_direct",
@@ -301,7 +301,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
 
 def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
                        lmax: int, refine: float = 1.0, angles: int = TABLE_ANGLES,
-                       chunk: int = 16384) -> tuple[torch.Tensor, torch.Tensor | None]:
+                       chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor | None]:
     r"""Return the rows of :func:`exact_rows_direct` by rotating a canonical table.
 
     An isotropic BRDF's transfer depends on the sample only through its frame and the exitance
@@ -343,65 +343,33 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     tn = tang.norm(dim=-1, keepdim=True)
     tang = torch.where(tn > 1e-9, tang / tn.clamp_min(1e-300), fallback)
     rot = torch.stack([tang, torch.linalg.cross(normal, tang), normal], -1)  # columns
-    k = (lmax + 1) ** 2
-    # ZYZ Euler angles of each frame, R = Rz(a) Ry(b) Rz(c); Ry(b) = M Rz(b) Mᵀ with
-    # M = Rx(−90°) (takes z to y), so D(R) = Z(a) D(M) Z(b) D(M)ᵀ Z(c): z-rotations mix the
-    # (m, −m) pairs, D(M) is one fixed block per band
-    b_ang = torch.arccos(normal[:, 2].clamp(-1.0, 1.0))
-    a_ang = torch.atan2(normal[:, 1], normal[:, 0])
-    q = _rot_z(-b_ang, 1) @ _rot_z(-a_ang, 2) @ rot
-    c_ang = torch.atan2(q[:, 1, 0], q[:, 0, 0])
-    m_fixed = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
-                           dtype=torch.float64)
-    jb = wigner_d_real_blocks(m_fixed, lmax)
+    euler = torch.stack(zyz_angles(rot))  # (3, N): R = Rz(a) Ry(b) Rz(c)
+    rotator = zyz_rotator(lmax, torch.float64, normal.device)
+    # samples in order of γ: a chunk then needs only the few table angles around its own,
+    # and the interpolation is one small product (table columns × sparse weights)
+    order = torch.argsort(gam)
+    taps = torch.arange(4)
 
-    def rotate(table):
-        out = normal.new_zeros((normal.shape[0],) + table.shape[1:])
+    def rotate(table):  # (G, K) -> (N, K)
+        tab = rotator.to_layout(table)  # (K', G)
+        out = normal.new_empty((normal.shape[0], table.shape[-1]))
         for s in range(0, normal.shape[0], chunk):
-            e = min(s + chunk, normal.shape[0])
-            idx = i0[s:e, None] + torch.arange(4)
-            c = (table[idx] * wts[s:e].reshape(e - s, 4, *([1] * (table.ndim - 1)))).sum(1)
-            for l in range(lmax + 1):
-                sl = slice(l * l, (l + 1) ** 2)
-                v = _z_band(c[..., sl], c_ang[s:e], l)
-                v = v @ jb[l]  # D(M)ᵀ v, rows as vectors
-                v = _z_band(v, b_ang[s:e], l)
-                v = v @ jb[l].T
-                out[s:e, ..., sl] = _z_band(v, a_ang[s:e], l)
+            ids = order[s:s + chunk]
+            i0c = i0[ids]
+            lo, hi = int(i0c.min()), int(i0c.max()) + 4
+            w = tab.new_zeros(hi - lo, ids.shape[0])
+            w.scatter_(0, (i0c - lo)[None, :] + taps[:, None], wts[ids].T)
+            x = rotator.rotate_(tab[:, lo:hi] @ w, *euler[:, ids])
+            out.index_copy_(0, ids, rotator.from_layout(x).T)
         return out
 
-    assert ta.shape[-1] == k
-    return rotate(ta), (None if tq is None else rotate(tq))
+    def rotate_any(table):  # (G, K) or per channel (G, C, K)
+        if table.ndim == 2:
+            return rotate(table)
+        return torch.stack([rotate(table[:, c]) for c in range(table.shape[1])], 1)
 
-
-def _rot_z(ang: torch.Tensor, axis: int) -> torch.Tensor:
-    """``(P, 3, 3)`` rotations by ``ang`` about z (``axis = 2``) or y (``axis = 1``)."""
-    c, s = torch.cos(ang), torch.sin(ang)
-    o, z = torch.ones_like(ang), torch.zeros_like(ang)
-    if axis == 2:
-        rows = [[c, -s, z], [s, c, z], [z, z, o]]
-    else:
-        rows = [[c, z, s], [z, o, z], [-s, z, c]]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
-
-
-def _z_band(v: torch.Tensor, ang: torch.Tensor, l: int) -> torch.Tensor:
-    """Band-``l`` coefficients ``(P, ..., 2l+1)`` of ``f(Rz(ang)ᵀ ω)`` (real SH, index ``l+m``).
-
-    ``Y_lm ∝ cos mφ``, ``Y_l,−m ∝ sin mφ`` (docs/conventions.md), so ``c_m → cos(mα) c_m −
-    sin(mα) c_−m`` and ``c_−m → sin(mα) c_m + cos(mα) c_−m``.
-    """
-    if l == 0:
-        return v
-    m = torch.arange(1, l + 1, dtype=v.dtype, device=v.device)
-    shape = (ang.shape[0],) + (1,) * (v.ndim - 2) + (l,)
-    cs = torch.cos(ang[:, None] * m).reshape(shape)
-    sn = torch.sin(ang[:, None] * m).reshape(shape)
-    pos, neg = v[..., l + 1:], v[..., :l].flip(-1)  # c_m and c_−m for m = 1..l
-    out = v.clone()
-    out[..., l + 1:] = cs * pos - sn * neg
-    out[..., :l] = (sn * pos + cs * neg).flip(-1)
-    return out
+    assert ta.shape[-1] == (lmax + 1) ** 2
+    return rotate_any(ta), (None if tq is None else rotate_any(tq))
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:
