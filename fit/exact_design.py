@@ -78,6 +78,8 @@ TABLE_ANGLES = 193
 ROTATE_ABOVE = 2
 #: SH values (float64) evaluated at once per chunk of samples.
 CHUNK_BYTES = 1 << 27
+#: Coefficients per chunk of the rotated evaluation (samples × (L+1)²).
+ROTATE_CHUNK_VALUES = 1 << 19
 #: Designs kept between fits (the matrix and repeated fits reuse them), by content key.
 _CACHE: OrderedDict = OrderedDict()
 #: Largest table (bytes) kept between fits: larger ones (real captures) are freed with the fit.
@@ -301,7 +303,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
 
 def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
                        lmax: int, refine: float = 1.0, angles: int = TABLE_ANGLES,
-                       chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor | None]:
+                       chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     r"""Return the rows of :func:`exact_rows_direct` by rotating a canonical table.
 
     An isotropic BRDF's transfer depends on the sample only through its frame and the exitance
@@ -348,19 +350,27 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     # samples in order of γ: a chunk then needs only the few table angles around its own,
     # and the interpolation is one small product (table columns × sparse weights)
     order = torch.argsort(gam)
+    i0s, wts_s, euler_s = i0[order], wts[order].T.contiguous(), euler[:, order].contiguous()
     taps = torch.arange(4)
+    if chunk is None:  # a chunk's working rows (~2 MB) stay in cache (measured: 512-1024 at L 16)
+        chunk = max(256, ROTATE_CHUNK_VALUES // (lmax + 1) ** 2)
 
     def rotate(table):  # (G, K) -> (N, K)
         tab = rotator.to_layout(table)  # (K', G)
         out = normal.new_empty((normal.shape[0], table.shape[-1]))
+        buf_all = normal.new_empty((min(chunk, normal.shape[0]), table.shape[-1]))
         for s in range(0, normal.shape[0], chunk):
             ids = order[s:s + chunk]
-            i0c = i0[ids]
-            lo, hi = int(i0c.min()), int(i0c.max()) + 4
+            i0c = i0s[s:s + chunk]
+            lo, hi = int(i0c[0]), int(i0c[-1]) + 4  # sorted
             w = tab.new_zeros(hi - lo, ids.shape[0])
-            w.scatter_(0, (i0c - lo)[None, :] + taps[:, None], wts[ids].T)
-            x = rotator.rotate_(tab[:, lo:hi] @ w, *euler[:, ids])
-            out.index_copy_(0, ids, rotator.from_layout(x).T)
+            w.scatter_(0, (i0c - lo)[None, :] + taps[:, None], wts_s[:, s:s + chunk])
+            x = tab.new_empty(tab.shape[0], ids.shape[0])
+            torch.mm(tab[: rotator.half, lo:hi], w, out=x[: rotator.half])
+            x = rotator.rotate_(x, *euler_s[:, s:s + chunk], even=True)
+            buf = buf_all[: ids.shape[0]]
+            buf.copy_(rotator.from_layout(x).T)  # then whole rows: far cheaper than strided
+            out[ids] = buf
         return out
 
     def rotate_any(table):  # (G, K) or per channel (G, C, K)

@@ -242,6 +242,8 @@ class ZYZRotator:
                             ri != list(range(ri[0], ri[0] + len(ri))):
                         raise AssertionError(f"class of band {l} not contiguous")
                     sl_o, sl_i = slice(ro[0], ro[-1] + 1), slice(ri[0], ri[-1] + 1)
+                    if any(o == sl_o for o, _, _ in self.blocks):
+                        raise AssertionError(f"class of band {l} is the image of two classes")
                     b = b.to(device=self.device, dtype=dtype)
                     self.blocks.append((sl_o, sl_i, b.contiguous()))
                     self.blocks_t.append((sl_i, sl_o, b.T.contiguous()))
@@ -261,10 +263,16 @@ class ZYZRotator:
         """``(K', P)`` layout → ``(K, P)`` natural order (rows; transpose for samples-major)."""
         return x.index_select(0, self.dst)
 
-    def _z(self, x: torch.Tensor, ang: torch.Tensor) -> None:
-        arg = ang[None, :] * torch.arange(self.lmax + 1, dtype=x.dtype, device=x.device)[:, None]
-        c = torch.cos(arg).index_select(0, self.m_pos)
-        s = torch.sin(arg).index_select(0, self.m_pos)
+    def _cos_sin(self, angles: torch.Tensor) -> tuple[list, list]:
+        """``cos(m θ)``, ``sin(m θ)`` on the rows of the ``m ≥ 0`` half: ``A × (half, P)``."""
+        m = torch.arange(self.lmax + 1, dtype=angles.dtype, device=angles.device)
+        arg = angles[:, None, :] * m[None, :, None]
+        cos, sin = torch.cos(arg), torch.sin(arg)
+        # row gathers per angle (a gather along the middle axis is many times slower)
+        return ([c.index_select(0, self.m_pos) for c in cos],
+                [s.index_select(0, self.m_pos) for s in sin])
+
+    def _z(self, x: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> None:
         pos, neg = x[: self.half], x[self.half:]
         new_pos = pos * c
         new_pos.addcmul_(neg, s, value=-1.0)
@@ -272,23 +280,32 @@ class ZYZRotator:
         pos.copy_(new_pos)
 
     def _j(self, x: torch.Tensor, blocks) -> torch.Tensor:
-        y = torch.zeros_like(x)
+        y = torch.empty_like(x)
         y[0] = x[0]  # band 0
-        for so, si, b in blocks:
-            y[so].addmm_(b, x[si])
+        y.index_fill_(0, self.zero_rows, 0.0)
+        for so, si, b in blocks:  # each class of a band is the image of exactly one class
+            y[so].addmm_(b, x[si], beta=0.0)  # beta 0: the empty rows are not read
         return y
 
     def rotate_(self, x: torch.Tensor, alpha: torch.Tensor, beta: torch.Tensor,
-                gamma: torch.Tensor) -> torch.Tensor:
+                gamma: torch.Tensor, even: bool = False) -> torch.Tensor:
         """``D(Rz(α) Ry(β) Rz(γ))`` applied to each column of ``x`` ``(K', P)`` (layout).
 
-        ``x`` is overwritten (returned rotated; may be a new tensor).
+        ``x`` is overwritten (returned rotated; may be a new tensor). ``even``: the input has no
+        ``m < 0`` (sine) part — a function symmetric under ``y → −y`` — and its second half
+        is not read (the first z-rotation then only scales).
         """
-        self._z(x, gamma.to(x.dtype))
+        c, s = self._cos_sin(torch.stack([alpha, beta, gamma]).to(x.dtype))
+        if even:
+            pos = x[: self.half]
+            torch.mul(pos, s[2], out=x[self.half:])
+            pos.mul_(c[2])
+        else:
+            self._z(x, c[2], s[2])
         x = self._j(x, self.blocks_t)  # Jᵀ x
-        self._z(x, beta.to(x.dtype))
+        self._z(x, c[1], s[1])
         x = self._j(x, self.blocks)  # J x
-        self._z(x, alpha.to(x.dtype))
+        self._z(x, c[0], s[0])
         return x
 
 
@@ -339,5 +356,5 @@ def rotate_sh_zyz(coeffs: torch.Tensor, alpha: torch.Tensor, beta: torch.Tensor,
     for s in range(0, flat.shape[0], max(1, chunk)):
         e = min(s + max(1, chunk), flat.shape[0])
         x = rot.rotate_(rot.to_layout(flat[s:e]), *angles[:, s:e])
-        out[s:e] = rot.from_layout(x).T
+        out[s:e].copy_(rot.from_layout(x).T)
     return out.reshape(coeffs.shape)
