@@ -180,10 +180,14 @@ def horizon_clamped(model: BRDFModel) -> bool:
 
 
 def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int,
-           clip: bool = True):
+           clip: bool = True, mirror: bool = False):
     """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc).
 
     ``clip=False`` (a model not clamped at the horizon): whole rings to ``θ_lobe``.
+    ``mirror``: only the nodes on one side of the plane of ``n`` and ``r`` (φ − φn < 0, and
+    the node on the plane when ``nphi`` is odd), weights doubled off the plane. Node ``j``
+    of a ring and node ``nphi − 1 − j`` are mirror images (both φ rules are symmetric about
+    ``φn``), so for an integrand symmetric about that plane this is the whole rule.
     """
     dt, dev = normal.dtype, normal.device
     cg = (normal * r).sum(-1).clamp(-1.0, 1.0)  # cos γ
@@ -213,6 +217,13 @@ def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, np
     ph = torch.where(full[..., None], ph_full, ph_arc)  # (P, 2nt, nphi)
     wph = torch.where(full[..., None], torch.full_like(ph, 2.0 * math.pi / nphi),
                       alpha[..., None] * wp)
+    if mirror:
+        half = (nphi + 1) // 2
+        ph = ph[..., :half]
+        twice = torch.full((half,), 2.0, dtype=dt, device=dev)
+        if nphi % 2:
+            twice[-1] = 1.0  # the node on the plane is its own image
+        wph = wph[..., :half] * twice
     d = (ct[..., None, None] * r[:, None, None, :]
          + (st[..., None] * torch.cos(ph))[..., None] * t[:, None, None, :]
          + (st[..., None] * torch.sin(ph))[..., None] * b[:, None, None, :])
@@ -239,8 +250,8 @@ def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, 
 
 
 def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
-                      lmax: int, refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES
-                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
+                      lmax: int, refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES,
+                      mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     r"""Specular rows ``D_{p,lm}`` by the per-sample quadrature (module doc), no diffuse part.
 
     Parameters
@@ -254,6 +265,13 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
         Lighting bandwidth.
     refine : float
         Multiplies every node count (the convergence check uses 2).
+    chunk_bytes : int
+        SH values (float64 bytes) evaluated at once.
+    mirror : bool
+        Every sample has ``n`` and ``r`` in the x–z plane (the canonical samples of
+        :func:`exact_rows_rotated`): an isotropic transfer is then symmetric under ``y → −y``,
+        so half of each ring's nodes (weights doubled) give the ``cos mφ`` rows and the
+        ``sin mφ`` rows (``m < 0``) are exactly 0 — half the cost, same rows to rounding.
 
     Returns
     -------
@@ -272,7 +290,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     if not clip:
         th_lobe = _lobe_extent_full(model)
     nt, nphi = node_counts(lmax, lobe_bandwidth(model), th_lobe, refine)
-    m = 2 * nt * nphi
+    m = 2 * nt * ((nphi + 1) // 2 if mirror else nphi)
     k = (lmax + 1) ** 2
     step = max(1, chunk_bytes // (8 * m * max(k, 8)))
     n_all = normal.shape[0]
@@ -283,7 +301,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     any_q = False
     for s in range(0, n_all, step):
         e = min(s + step, n_all)
-        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip)
+        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip, mirror)
         p = e - s
         nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
         ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
@@ -298,7 +316,18 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
         else:
             g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
             rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
+    if mirror:  # sine terms are odd about the plane: their exact value is 0
+        odd = _sine_columns(lmax, normal.device)
+        rows_a[..., odd] = 0.0
+        if rows_q is not None:
+            rows_q[..., odd] = 0.0
     return rows_a, (rows_q if any_q else None)
+
+
+def _sine_columns(lmax: int, device) -> torch.Tensor:
+    """Return the indices ``l(l+1)+m`` with ``m < 0`` (``sin mφ`` terms, docs/conventions.md)."""
+    l = torch.repeat_interleave(torch.arange(lmax + 1), 2 * torch.arange(lmax + 1) + 1)
+    return torch.nonzero(torch.arange((lmax + 1) ** 2) < l * (l + 1)).flatten().to(device)
 
 
 def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
@@ -327,7 +356,8 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     z = torch.zeros_like(grid)
     cn = torch.stack([z, z, torch.ones_like(grid)], -1)
     cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
-    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine)  # (G, K) or (G, C, K)
+    # (G, K) or (G, C, K); n and r in the x-z plane, an isotropic lobe symmetric about it
+    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine, mirror=True)
     # 4-point Lagrange weights on the uniform grid
     h = gmax / (angles - 1)
     u = gam / h
