@@ -46,6 +46,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -298,24 +299,28 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     affine = probe is not None
     rows_a = normal.new_zeros((n_all, k) if affine else (n_all, model.channels, k))
     rows_q = normal.new_zeros((n_all, k)) if affine else None
-    any_q = False
-    for s in range(0, n_all, step):
-        e = min(s + step, n_all)
-        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip, mirror)
-        p = e - s
-        nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
-        ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
-        dd = d.reshape(-1, 3)
-        y = real_sh(dd, lmax).reshape(p, m, k)
-        if affine:
-            a, q = model.specular_affine(nn, dd, ww)
-            rows_a[s:e] = torch.einsum("pm,pmk->pk", w * a.reshape(p, m), y)
-            if bool((q != 0).any()):
-                any_q = True
-                rows_q[s:e] = torch.einsum("pm,pmk->pk", w * q.reshape(p, m), y)
-        else:
-            g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
-            rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
+    any_q = []
+
+    def work(start, stop):
+        for s in range(start, stop, step):
+            e = min(s + step, stop)
+            d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip, mirror)
+            p = e - s
+            nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
+            ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
+            dd = d.reshape(-1, 3)
+            y = real_sh(dd, lmax).reshape(p, m, k)
+            if affine:
+                a, q = model.specular_affine(nn, dd, ww)
+                rows_a[s:e] = torch.einsum("pm,pmk->pk", w * a.reshape(p, m), y)
+                if bool((q != 0).any()):
+                    any_q.append(True)
+                    rows_q[s:e] = torch.einsum("pm,pmk->pk", w * q.reshape(p, m), y)
+            else:
+                g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
+                rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
+
+    _in_workers(work, n_all, step)
     if mirror:  # sine terms are odd about the plane: their exact value is 0
         odd = _sine_columns(lmax, normal.device)
         rows_a[..., odd] = 0.0
@@ -385,22 +390,25 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     if chunk is None:  # a chunk's working rows (~2 MB) stay in cache (measured: 512-1024 at L 16)
         chunk = max(256, ROTATE_CHUNK_VALUES // (lmax + 1) ** 2)
 
+    def rotate_range(tab, out, start, stop):
+        buf_all = tab.new_empty((min(chunk, stop - start), out.shape[-1]))
+        for s in range(start, stop, chunk):
+            e = min(s + chunk, stop)
+            ids, i0c = order[s:e], i0s[s:e]
+            lo, hi = int(i0c[0]), int(i0c[-1]) + 4  # sorted
+            w = tab.new_zeros(hi - lo, e - s)
+            w.scatter_(0, (i0c - lo)[None, :] + taps[:, None], wts_s[:, s:e])
+            x = tab.new_empty(tab.shape[0], e - s)
+            torch.mm(tab[: rotator.half, lo:hi], w, out=x[: rotator.half])
+            x = rotator.rotate_(x, *euler_s[:, s:e], even=True)
+            buf = buf_all[: e - s]
+            buf.copy_(rotator.from_layout(x).T)  # then whole rows: far cheaper than strided
+            out[ids] = buf
+
     def rotate(table):  # (G, K) -> (N, K)
         tab = rotator.to_layout(table)  # (K', G)
         out = normal.new_empty((normal.shape[0], table.shape[-1]))
-        buf_all = normal.new_empty((min(chunk, normal.shape[0]), table.shape[-1]))
-        for s in range(0, normal.shape[0], chunk):
-            ids = order[s:s + chunk]
-            i0c = i0s[s:s + chunk]
-            lo, hi = int(i0c[0]), int(i0c[-1]) + 4  # sorted
-            w = tab.new_zeros(hi - lo, ids.shape[0])
-            w.scatter_(0, (i0c - lo)[None, :] + taps[:, None], wts_s[:, s:s + chunk])
-            x = tab.new_empty(tab.shape[0], ids.shape[0])
-            torch.mm(tab[: rotator.half, lo:hi], w, out=x[: rotator.half])
-            x = rotator.rotate_(x, *euler_s[:, s:s + chunk], even=True)
-            buf = buf_all[: ids.shape[0]]
-            buf.copy_(rotator.from_layout(x).T)  # then whole rows: far cheaper than strided
-            out[ids] = buf
+        _in_workers(lambda a, b: rotate_range(tab, out, a, b), normal.shape[0], chunk)
         return out
 
     def rotate_any(table):  # (G, K) or per channel (G, C, K)
@@ -410,6 +418,30 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
 
     assert ta.shape[-1] == (lmax + 1) ** 2
     return rotate_any(ta), (None if tq is None else rotate_any(tq))
+
+
+def _in_workers(work, n: int, chunk: int) -> None:
+    """Run ``work(start, stop)`` over ``[0, n)`` in one contiguous range per torch thread.
+
+    Each range runs in its own Python thread with torch's intra-op threads set to 1 for the
+    duration (restored after): the chunks' operations are small (per-band products of a few
+    rows), and splitting each of them over OpenMP threads cost more in synchronisation than
+    it gained — up to 3× the CPU on a loaded 2-core machine (torch releases the GIL inside
+    its operations, so the ranges run in parallel).
+    """
+    threads = torch.get_num_threads()
+    parts = max(1, min(threads, n // max(chunk, 1)))
+    if parts == 1:
+        work(0, n)
+        return
+    bounds = [round(i * n / parts) for i in range(parts + 1)]
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(max_workers=parts) as pool:
+            for f in [pool.submit(work, bounds[i], bounds[i + 1]) for i in range(parts)]:
+                f.result()
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:
