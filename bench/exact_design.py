@@ -9,7 +9,9 @@ sample has its own rule, so its cost is exactly proportional). Columns: wall sec
 seconds of the process (all threads; less sensitive than wall to other jobs on the machine),
 the part of the wall time spent on the canonical table (``auto`` with the rotated
 evaluation: the same rows, :data:`~brdfcap.fit.exact_design.TABLE_ANGLES` canonical samples,
-timed on their own), and the 1-minute load average at the end. Example::
+timed on their own), and the 1-minute load average at the end. ``--check N`` also prints the
+largest difference of the rows from the per-sample rule on ``N`` strided samples (relative to
+the largest entry; the design's stated tolerance is ``CONVERGENCE_TOL``). Example::
 
     python bench/exact_design.py --px 32,256 --lmax 16,24 --threads 2
 """
@@ -45,6 +47,8 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="auto", choices=("auto", "direct"))
     ap.add_argument("--subset", type=int, default=600, help="samples timed (direct)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--check", type=int, default=0,
+                    help="also compare with the per-sample rule on this many strided samples")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     print("| BRDF | views | N | L | method | nodes per rule | wall s | CPU s | table s | load |")
@@ -73,6 +77,13 @@ def main(argv=None) -> int:
                                       torch.stack([-g.sin(), z, g.cos()], -1), lmax,
                                       mirror=True)
                     table = f"{time.perf_counter() - t1:.1f}"
+                if args.check and args.method == "auto":
+                    rows = exact_rows(m, ns, rs, lmax)[0]
+                    k = max(1, n.shape[0] // args.check)
+                    ref = exact_rows_direct(m, n[::k], r[::k], lmax)[0]
+                    err = float((rows[::k] - ref).abs().max() / ref.abs().max())
+                    print(f"<!-- {name} L {lmax}: against the per-sample rule on "
+                          f"{ref.shape[0]} strided samples: {err:.1e} of the largest entry -->")
                 ext = " (extrapolated)" if step > 1 else ""
                 print(f"| {name} | 6 × {px}² | {n.shape[0]} | {lmax} | {args.method} "
                       f"| {2 * nt * nphi} | {dt:.1f}{ext} | {dc:.1f} | {table} "

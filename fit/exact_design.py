@@ -343,13 +343,19 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     An isotropic BRDF's transfer depends on the sample only through its frame and the exitance
     angle ``γ``: in the local frame ``n = z``, ``ωo = (sin γ, 0, cos γ)`` its coefficients
     ``c_lm(γ)`` are the direct rows of that canonical sample, tabulated at ``angles`` uniform
-    ``γ`` on ``[0, max γ_p]`` and interpolated per sample (4-point Lagrange). With ``R_p`` the
-    sample's local-to-world rotation (columns: the tangent toward ``ωo``, ``n × t``, ``n``),
-    ``Y_l(R ω') = D^l(R) Y_l(ω')`` (:mod:`brdfcap.fit.rotation`) gives
-    ``D_{p,l·} = D^l(R_p) c_l(γ_p)``, applied as ZYZ Euler rotations ``Z(a) D(M) Z(b) D(M)ᵀ
-    Z(c)`` with one fixed ``D(M)`` (``M = Rx(−90°)``, Ivanic & Ruedenberg 1996 for its blocks):
-    cost ``angles ×`` the direct rule plus ``~(8/3) L³`` flops per sample. Anisotropic models
-    are not supported (none is registered).
+    ``γ`` on ``[0, max γ_p]`` (by the half rule, ``mirror=True``: the canonical sample is
+    symmetric under ``y → −y``, so its ``sin mφ`` rows are 0) and interpolated per sample
+    (4-point Lagrange). With ``R_p`` the sample's local-to-world rotation (columns: the
+    tangent toward ``ωo``, ``n × t``, ``n``), ``Y_l(R ω') = D^l(R) Y_l(ω')``
+    (:mod:`brdfcap.fit.rotation`) gives ``D_{p,l·} = D^l(R_p) c_l(γ_p)``, applied as ZYZ Euler
+    rotations ``Z(a) J Z(b) Jᵀ Z(c)`` by :class:`~brdfcap.fit.rotation.ZYZRotator` (the
+    J-matrix factorisation, Pinchon & Hoggan 2007; ``J`` the 90° rotation's Wigner blocks,
+    Ivanic & Ruedenberg 1996). Samples are taken in order of ``γ`` in chunks of
+    ``~ROTATE_CHUNK_VALUES / K``, so a chunk's interpolation is one product of a few table
+    columns with its sparse weights, and the chunks are split over the torch threads
+    (:func:`_in_workers`). Cost: ``angles / 2 ×`` the direct rule for the table plus
+    ``~Σ_l (2l+1)² + 20 K`` flops per sample. Anisotropic models are not supported (none is
+    registered).
     """
     normal = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
     r = reflected.to(torch.float64)
@@ -387,37 +393,39 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     order = torch.argsort(gam)
     i0s, wts_s, euler_s = i0[order], wts[order].T.contiguous(), euler[:, order].contiguous()
     taps = torch.arange(4)
-    if chunk is None:  # a chunk's working rows (~2 MB) stay in cache (measured: 512-1024 at L 16)
-        chunk = max(256, ROTATE_CHUNK_VALUES // (lmax + 1) ** 2)
 
-    def rotate_range(tab, out, start, stop):
-        buf_all = tab.new_empty((min(chunk, stop - start), out.shape[-1]))
+    def rotate_range(tab, outs, start, stop):
+        nb = tab.shape[1]
+        buf_all = tab.new_empty((min(chunk, stop - start), rotator.dst.shape[0]))
         for s in range(start, stop, chunk):
             e = min(s + chunk, stop)
             ids, i0c = order[s:e], i0s[s:e]
             lo, hi = int(i0c[0]), int(i0c[-1]) + 4  # sorted
             w = tab.new_zeros(hi - lo, e - s)
             w.scatter_(0, (i0c - lo)[None, :] + taps[:, None], wts_s[:, s:e])
-            x = tab.new_empty(tab.shape[0], e - s)
-            torch.mm(tab[: rotator.half, lo:hi], w, out=x[: rotator.half])
-            x = rotator.rotate_(x, *euler_s[:, s:e], even=True)
+            x = tab.new_empty(tab.shape[0], nb, e - s)
+            torch.mm(tab[: rotator.half, :, lo:hi].reshape(rotator.half * nb, hi - lo), w,
+                     out=x[: rotator.half].view(rotator.half * nb, e - s))
+            x = rotator.from_layout(rotator.rotate_(x, *euler_s[:, s:e], even=True))
             buf = buf_all[: e - s]
-            buf.copy_(rotator.from_layout(x).T)  # then whole rows: far cheaper than strided
-            out[ids] = buf
-
-    def rotate(table):  # (G, K) -> (N, K)
-        tab = rotator.to_layout(table)  # (K', G)
-        out = normal.new_empty((normal.shape[0], table.shape[-1]))
-        _in_workers(lambda a, b: rotate_range(tab, out, a, b), normal.shape[0], chunk)
-        return out
-
-    def rotate_any(table):  # (G, K) or per channel (G, C, K)
-        if table.ndim == 2:
-            return rotate(table)
-        return torch.stack([rotate(table[:, c]) for c in range(table.shape[1])], 1)
+            for b, out in enumerate(outs):
+                buf.copy_(x[:, b].T)  # then whole rows: far cheaper than strided
+                out[ids] = buf
 
     assert ta.shape[-1] == (lmax + 1) ** 2
-    return rotate_any(ta), (None if tq is None else rotate_any(tq))
+    # every table (a, per channel if not affine; q) in one rotation pass: B vectors a sample
+    a = normal.new_empty((normal.shape[0],) + ta.shape[1:])
+    tables, outs = ([ta], [a]) if ta.ndim == 2 else (list(ta.unbind(1)), list(a.unbind(1)))
+    q = None
+    if tq is not None:
+        q = normal.new_empty((normal.shape[0], tq.shape[-1]))
+        tables.append(tq)
+        outs.append(q)
+    if chunk is None:  # a chunk's working rows (~4 MB) stay in cache (512-1024 best at L 16)
+        chunk = max(128, ROTATE_CHUNK_VALUES // ((lmax + 1) ** 2 * len(tables)))
+    tab = torch.stack([rotator.to_layout(t) for t in tables], 1)  # (K', B, G)
+    _in_workers(lambda s, e: rotate_range(tab, outs, s, e), normal.shape[0], chunk)
+    return a, q
 
 
 def _in_workers(work, n: int, chunk: int) -> None:

@@ -280,22 +280,28 @@ class ZYZRotator:
         pos.copy_(new_pos)
 
     def _j(self, x: torch.Tensor, blocks) -> torch.Tensor:
-        y = torch.empty_like(x)
-        y[0] = x[0]  # band 0
+        x2 = x.reshape(x.shape[0], -1)  # (K', B·P): the B vectors of a sample share J
+        y = torch.empty_like(x2)
+        y[0] = x2[0]  # band 0
         y.index_fill_(0, self.zero_rows, 0.0)
         for so, si, b in blocks:  # each class of a band is the image of exactly one class
-            y[so].addmm_(b, x[si], beta=0.0)  # beta 0: the empty rows are not read
-        return y
+            y[so].addmm_(b, x2[si], beta=0.0)  # beta 0: the empty rows are not read
+        return y.view(x.shape)
 
     def rotate_(self, x: torch.Tensor, alpha: torch.Tensor, beta: torch.Tensor,
                 gamma: torch.Tensor, even: bool = False) -> torch.Tensor:
         """``D(Rz(α) Ry(β) Rz(γ))`` applied to each column of ``x`` ``(K', P)`` (layout).
 
-        ``x`` is overwritten (returned rotated; may be a new tensor). ``even``: the input has no
+        ``x`` may also be ``(K', B, P)`` (contiguous): ``B`` vectors per sample, one rotation
+        (e.g. a scale-linear part and an offset, or colour channels), for the cost of one
+        set of angles and one product per block. ``x`` is overwritten (returned rotated;
+        may be a new tensor). ``even``: the input has no
         ``m < 0`` (sine) part — a function symmetric under ``y → −y`` — and its second half
         is not read (the first z-rotation then only scales).
         """
         c, s = self._cos_sin(torch.stack([alpha, beta, gamma]).to(x.dtype))
+        if x.ndim == 3:
+            c, s = [v[:, None, :] for v in c], [v[:, None, :] for v in s]
         if even:
             pos = x[: self.half]
             torch.mul(pos, s[2], out=x[self.half:])
