@@ -185,10 +185,11 @@ class ZYZRotator:
     Ruedenberg recursion, :func:`wigner_d_real_blocks`, computed once), and the z-rotation
     ``Z(α)`` mixes only the ``(m, −m)`` pairs, ``c_m → cos(mα) c_m − sin(mα) c_−m``,
     ``c_−m → sin(mα) c_m + cos(mα) c_−m`` (docs/conventions.md: ``Y_lm ∝ cos mφ``,
-    ``Y_l,−m ∝ sin mφ``). This is the "J-matrix" factorisation of Pinchon & Hoggan (2007,
-    J. Phys. A 40, 1597: ``Δ(α, β, γ) = X(α) J X(β) J X(γ)`` in their notation, their ``J``
-    symmetric for their choice of axes). e3nn 0.6's ``wigner_D`` (a matrix exponential of the
-    generators per rotation, in a y-up basis) does not batch cheaply and is not used.
+    ``Y_l,−m ∝ sin mφ``). This "J-matrix" factorisation of a turn about y into z-turns and
+    one fixed 90° turn is the one of Pinchon & Hoggan (2007, J. Phys. A 40, 1597) for real SH
+    and of SHTOOLS' ``SHRotateRealCoef`` (its ``dj(π/2)`` table). e3nn 0.6's ``wigner_D`` (a
+    matrix exponential of the generators per rotation, in a y-up basis) does not batch
+    cheaply and is not used.
 
     Layout: coefficients are rows, samples columns (``(K', P)``), reordered so that both steps
     are a few large tensor operations. The first half of the rows holds ``m ≥ 0`` (per band

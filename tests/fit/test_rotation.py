@@ -14,6 +14,7 @@ from brdfcap.fit.rotation import (
     wigner_d_real,
     wigner_d_real_blocks,
     zyz_angles,
+    zyz_rotator,
 )
 from brdfcap.fit.sh import num_coeffs, real_sh, sh_index
 from hypothesis import given, settings
@@ -169,3 +170,22 @@ def test_batched_zyz_rotation_matches_wigner_blocks_with_channels():
         rotate_sh_zyz(coeffs[..., :-1], *zyz_angles(rot))
     with pytest.raises(ValueError, match="must be"):
         rotate_sh_zyz(coeffs, *zyz_angles(rot[:3]))
+
+
+def test_rotator_even_input_and_stacked_vectors():
+    """``ZYZRotator.rotate_`` on ``(K', B, P)`` with ``even=True`` (no sine part read) equals
+    the general rotation of each vector with its sine part set to 0.
+    """
+    lmax, n = 7, 60
+    rot = _random_rotations(n, 8)
+    a, b, c = zyz_angles(rot)
+    g = torch.Generator().manual_seed(9)
+    coeffs = torch.randn(n, 2, num_coeffs(lmax), generator=g, dtype=torch.float64)
+    l = torch.repeat_interleave(torch.arange(lmax + 1), 2 * torch.arange(lmax + 1) + 1)
+    coeffs[..., torch.arange(num_coeffs(lmax)) < l * (l + 1)] = 0.0  # m < 0
+    ref = rotate_sh_zyz(coeffs, a, b, c)
+    r = zyz_rotator(lmax)
+    x = torch.stack([r.to_layout(coeffs[:, k]) for k in range(2)], 1).contiguous()
+    x[r.half:] = float("nan")  # must not be read
+    got = r.from_layout(r.rotate_(x, a, b, c, even=True))
+    assert float((got.permute(2, 1, 0) - ref).abs().max()) < 1e-12
