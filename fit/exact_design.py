@@ -363,7 +363,7 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     wo = 2.0 * cg[:, None] * normal - r
     gam = torch.arccos(cg.clamp(0.0, 1.0))
     gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
-    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64)
+    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64, device=normal.device)
     z = torch.zeros_like(grid)
     cn = torch.stack([z, z, torch.ones_like(grid)], -1)
     cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
@@ -374,8 +374,8 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     u = gam / h
     i0 = (u.floor().long() - 1).clamp(0, angles - 4)
     t = u - i0.to(u.dtype)  # position in node units from node i0, in [0, 3]
-    nodes = torch.arange(4, dtype=torch.float64)
-    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64)
+    nodes = torch.arange(4, dtype=torch.float64, device=normal.device)
+    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64, device=normal.device)
     for j in range(4):
         for k in range(4):
             if k != j:
@@ -392,7 +392,7 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     # and the interpolation is one small product (table columns × sparse weights)
     order = torch.argsort(gam)
     i0s, wts_s, euler_s = i0[order], wts[order].T.contiguous(), euler[:, order].contiguous()
-    taps = torch.arange(4)
+    taps = torch.arange(4, device=normal.device)
 
     def rotate_range(tab, outs, start, stop):
         nb = tab.shape[1]
