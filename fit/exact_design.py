@@ -285,6 +285,9 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     """
     normal = normal.to(torch.float64)
     r = reflected.to(torch.float64)
+    if mirror and normal.numel() and float(torch.cat([normal[:, 1], r[:, 1]]).abs().max()) > 1e-12:
+        raise ValueError("exact_rows_direct(mirror=True) needs every normal and reflected "
+                         "direction in the x-z plane (y = 0); pass mirror=False")
     wo = 2.0 * (normal * r).sum(-1, keepdim=True) * normal - r
     th_lobe = lobe_extent(model)
     clip = horizon_clamped(model)
@@ -320,7 +323,10 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
                 g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
                 rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
 
-    _in_workers(work, n_all, step)
+    # one thread of Python: real_sh's sphericart backend keeps scratch buffers per OpenMP
+    # thread number, which two Python threads would share (a data race), so this loop is not
+    # split over workers like the rotations are
+    work(0, n_all)
     if mirror:  # sine terms are odd about the plane: their exact value is 0
         odd = _sine_columns(lmax, normal.device)
         rows_a[..., odd] = 0.0
@@ -435,7 +441,10 @@ def _in_workers(work, n: int, chunk: int) -> None:
     duration (restored after): the chunks' operations are small (per-band products of a few
     rows), and splitting each of them over OpenMP threads cost more in synchronisation than
     it gained — up to 3× the CPU on a loaded 2-core machine (torch releases the GIL inside
-    its operations, so the ranges run in parallel).
+    its operations, so the ranges run in parallel). ``work`` must use only thread-safe
+    operations: plain torch tensor operations on disjoint outputs, never ``real_sh`` (its
+    sphericart backend shares scratch buffers between callers on the same OpenMP thread
+    number).
     """
     threads = torch.get_num_threads()
     parts = max(1, min(threads, n // max(chunk, 1)))
