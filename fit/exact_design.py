@@ -46,7 +46,6 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -323,9 +322,6 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
                 g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
                 rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
 
-    # one thread of Python: real_sh's sphericart backend keeps scratch buffers per OpenMP
-    # thread number, which two Python threads would share (a data race), so this loop is not
-    # split over workers like the rotations are
     work(0, n_all)
     if mirror:  # sine terms are odd about the plane: their exact value is 0
         odd = _sine_columns(lmax, normal.device)
@@ -358,8 +354,7 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     J-matrix factorisation, Pinchon & Hoggan 2007; ``J`` the 90° rotation's Wigner blocks,
     Ivanic & Ruedenberg 1996). Samples are taken in order of ``γ`` in chunks of
     ``~ROTATE_CHUNK_VALUES / K``, so a chunk's interpolation is one product of a few table
-    columns with its sparse weights, and the chunks are split over the torch threads
-    (:func:`_in_workers`). Cost: ``angles / 2 ×`` the direct rule for the table plus
+    columns with its sparse weights. Cost: ``angles / 2 ×`` the direct rule for the table plus
     ``~Σ_l (2l+1)² + 20 K`` flops per sample. Anisotropic models are not supported (none is
     registered).
     """
@@ -430,35 +425,16 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     if chunk is None:  # a chunk's working rows (~4 MB) stay in cache (512-1024 best at L 16)
         chunk = max(128, ROTATE_CHUNK_VALUES // ((lmax + 1) ** 2 * len(tables)))
     tab = torch.stack([rotator.to_layout(t) for t in tables], 1)  # (K', B, G)
-    _in_workers(lambda s, e: rotate_range(tab, outs, s, e), normal.shape[0], chunk)
-    return a, q
-
-
-def _in_workers(work, n: int, chunk: int) -> None:
-    """Run ``work(start, stop)`` over ``[0, n)`` in one contiguous range per torch thread.
-
-    Each range runs in its own Python thread with torch's intra-op threads set to 1 for the
-    duration (restored after): the chunks' operations are small (per-band products of a few
-    rows), and splitting each of them over OpenMP threads cost more in synchronisation than
-    it gained — up to 3× the CPU on a loaded 2-core machine (torch releases the GIL inside
-    its operations, so the ranges run in parallel). ``work`` must use only thread-safe
-    operations: plain torch tensor operations on disjoint outputs, never ``real_sh`` (its
-    sphericart backend shares scratch buffers between callers on the same OpenMP thread
-    number).
-    """
+    # on one torch thread: the chunks' operations are small (per-band products of a few rows)
+    # and splitting each over OpenMP threads cost 4-5x the wall time (6 x 256², Phong, L 16:
+    # 14.4 s at two threads against 3.1 s at one, bench/RESULTS.md)
     threads = torch.get_num_threads()
-    parts = max(1, min(threads, n // max(chunk, 1)))
-    if parts == 1:
-        work(0, n)
-        return
-    bounds = [round(i * n / parts) for i in range(parts + 1)]
     torch.set_num_threads(1)
     try:
-        with ThreadPoolExecutor(max_workers=parts) as pool:
-            for f in [pool.submit(work, bounds[i], bounds[i + 1]) for i in range(parts)]:
-                f.result()
+        rotate_range(tab, outs, 0, normal.shape[0])
     finally:
         torch.set_num_threads(threads)
+    return a, q
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:

@@ -132,7 +132,7 @@ def test_rotated_table_equals_direct_rule(name, params):
     assert float((a - a2).abs().max()) < 1e-5 * float(a.abs().max())
     if q is not None:
         assert float((q - q2).abs().max()) < 1e-5 * float(q.abs().max())
-    # the same rows from small chunks split over two worker threads
+    # the same rows from small chunks at two torch threads
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
