@@ -52,7 +52,7 @@ import torch
 from scipy.special import roots_legendre
 
 from .brdf.base import BRDFModel, orthonormal_basis
-from .rotation import wigner_d_real_blocks
+from .rotation import zyz_angles, zyz_rotator
 from .sh import real_sh
 
 __all__ = ["ExactRows", "exact_rows", "horizon_clamped", "exact_rows_direct",
@@ -78,6 +78,8 @@ TABLE_ANGLES = 193
 ROTATE_ABOVE = 2
 #: SH values (float64) evaluated at once per chunk of samples.
 CHUNK_BYTES = 1 << 27
+#: Coefficients per chunk of the rotated evaluation (samples × (L+1)²).
+ROTATE_CHUNK_VALUES = 1 << 19
 #: Designs kept between fits (the matrix and repeated fits reuse them), by content key.
 _CACHE: OrderedDict = OrderedDict()
 #: Largest table (bytes) kept between fits: larger ones (real captures) are freed with the fit.
@@ -178,10 +180,14 @@ def horizon_clamped(model: BRDFModel) -> bool:
 
 
 def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int,
-           clip: bool = True):
+           clip: bool = True, mirror: bool = False):
     """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc).
 
     ``clip=False`` (a model not clamped at the horizon): whole rings to ``θ_lobe``.
+    ``mirror``: only the nodes on one side of the plane of ``n`` and ``r`` (φ − φn < 0, and
+    the node on the plane when ``nphi`` is odd), weights doubled off the plane. Node ``j``
+    of a ring and node ``nphi − 1 − j`` are mirror images (both φ rules are symmetric about
+    ``φn``), so for an integrand symmetric about that plane this is the whole rule.
     """
     dt, dev = normal.dtype, normal.device
     cg = (normal * r).sum(-1).clamp(-1.0, 1.0)  # cos γ
@@ -211,6 +217,13 @@ def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, np
     ph = torch.where(full[..., None], ph_full, ph_arc)  # (P, 2nt, nphi)
     wph = torch.where(full[..., None], torch.full_like(ph, 2.0 * math.pi / nphi),
                       alpha[..., None] * wp)
+    if mirror:
+        half = (nphi + 1) // 2
+        ph = ph[..., :half]
+        twice = torch.full((half,), 2.0, dtype=dt, device=dev)
+        if nphi % 2:
+            twice[-1] = 1.0  # the node on the plane is its own image
+        wph = wph[..., :half] * twice
     d = (ct[..., None, None] * r[:, None, None, :]
          + (st[..., None] * torch.cos(ph))[..., None] * t[:, None, None, :]
          + (st[..., None] * torch.sin(ph))[..., None] * b[:, None, None, :])
@@ -237,8 +250,8 @@ def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, 
 
 
 def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
-                      lmax: int, refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES
-                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
+                      lmax: int, refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES,
+                      mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     r"""Specular rows ``D_{p,lm}`` by the per-sample quadrature (module doc), no diffuse part.
 
     Parameters
@@ -252,6 +265,13 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
         Lighting bandwidth.
     refine : float
         Multiplies every node count (the convergence check uses 2).
+    chunk_bytes : int
+        SH values (float64 bytes) evaluated at once.
+    mirror : bool
+        Every sample has ``n`` and ``r`` in the x–z plane (the canonical samples of
+        :func:`exact_rows_rotated`): an isotropic transfer is then symmetric under ``y → −y``,
+        so half of each ring's nodes (weights doubled) give the ``cos mφ`` rows and the
+        ``sin mφ`` rows (``m < 0``) are exactly 0 — half the cost, same rows to rounding.
 
     Returns
     -------
@@ -264,13 +284,16 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     """
     normal = normal.to(torch.float64)
     r = reflected.to(torch.float64)
+    if mirror and normal.numel() and float(torch.cat([normal[:, 1], r[:, 1]]).abs().max()) > 1e-12:
+        raise ValueError("exact_rows_direct(mirror=True) needs every normal and reflected "
+                         "direction in the x-z plane (y = 0); pass mirror=False")
     wo = 2.0 * (normal * r).sum(-1, keepdim=True) * normal - r
     th_lobe = lobe_extent(model)
     clip = horizon_clamped(model)
     if not clip:
         th_lobe = _lobe_extent_full(model)
     nt, nphi = node_counts(lmax, lobe_bandwidth(model), th_lobe, refine)
-    m = 2 * nt * nphi
+    m = 2 * nt * ((nphi + 1) // 2 if mirror else nphi)
     k = (lmax + 1) ** 2
     step = max(1, chunk_bytes // (8 * m * max(k, 8)))
     n_all = normal.shape[0]
@@ -278,42 +301,62 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     affine = probe is not None
     rows_a = normal.new_zeros((n_all, k) if affine else (n_all, model.channels, k))
     rows_q = normal.new_zeros((n_all, k)) if affine else None
-    any_q = False
-    for s in range(0, n_all, step):
-        e = min(s + step, n_all)
-        d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip)
-        p = e - s
-        nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
-        ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
-        dd = d.reshape(-1, 3)
-        y = real_sh(dd, lmax).reshape(p, m, k)
-        if affine:
-            a, q = model.specular_affine(nn, dd, ww)
-            rows_a[s:e] = torch.einsum("pm,pmk->pk", w * a.reshape(p, m), y)
-            if bool((q != 0).any()):
-                any_q = True
-                rows_q[s:e] = torch.einsum("pm,pmk->pk", w * q.reshape(p, m), y)
-        else:
-            g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
-            rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
+    any_q = []
+
+    def work(start, stop):
+        for s in range(start, stop, step):
+            e = min(s + step, stop)
+            d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip, mirror)
+            p = e - s
+            nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
+            ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
+            dd = d.reshape(-1, 3)
+            y = real_sh(dd, lmax).reshape(p, m, k)
+            if affine:
+                a, q = model.specular_affine(nn, dd, ww)
+                rows_a[s:e] = torch.einsum("pm,pmk->pk", w * a.reshape(p, m), y)
+                if bool((q != 0).any()):
+                    any_q.append(True)
+                    rows_q[s:e] = torch.einsum("pm,pmk->pk", w * q.reshape(p, m), y)
+            else:
+                g = model.eval_specular_cos(nn, dd, ww).reshape(p, m, -1)
+                rows_a[s:e] = torch.einsum("pm,pmc,pmk->pck", w, g, y)
+
+    work(0, n_all)
+    if mirror:  # sine terms are odd about the plane: their exact value is 0
+        odd = _sine_columns(lmax, normal.device)
+        rows_a[..., odd] = 0.0
+        if rows_q is not None:
+            rows_q[..., odd] = 0.0
     return rows_a, (rows_q if any_q else None)
+
+
+def _sine_columns(lmax: int, device) -> torch.Tensor:
+    """Return the indices ``l(l+1)+m`` with ``m < 0`` (``sin mφ`` terms, docs/conventions.md)."""
+    l = torch.repeat_interleave(torch.arange(lmax + 1), 2 * torch.arange(lmax + 1) + 1)
+    return torch.nonzero(torch.arange((lmax + 1) ** 2) < l * (l + 1)).flatten().to(device)
 
 
 def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
                        lmax: int, refine: float = 1.0, angles: int = TABLE_ANGLES,
-                       chunk: int = 16384) -> tuple[torch.Tensor, torch.Tensor | None]:
+                       chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     r"""Return the rows of :func:`exact_rows_direct` by rotating a canonical table.
 
     An isotropic BRDF's transfer depends on the sample only through its frame and the exitance
     angle ``γ``: in the local frame ``n = z``, ``ωo = (sin γ, 0, cos γ)`` its coefficients
     ``c_lm(γ)`` are the direct rows of that canonical sample, tabulated at ``angles`` uniform
-    ``γ`` on ``[0, max γ_p]`` and interpolated per sample (4-point Lagrange). With ``R_p`` the
-    sample's local-to-world rotation (columns: the tangent toward ``ωo``, ``n × t``, ``n``),
-    ``Y_l(R ω') = D^l(R) Y_l(ω')`` (:mod:`brdfcap.fit.rotation`) gives
-    ``D_{p,l·} = D^l(R_p) c_l(γ_p)``, applied as ZYZ Euler rotations ``Z(a) D(M) Z(b) D(M)ᵀ
-    Z(c)`` with one fixed ``D(M)`` (``M = Rx(−90°)``, Ivanic & Ruedenberg 1996 for its blocks):
-    cost ``angles ×`` the direct rule plus ``~(8/3) L³`` flops per sample. Anisotropic models
-    are not supported (none is registered).
+    ``γ`` on ``[0, max γ_p]`` (by the half rule, ``mirror=True``: the canonical sample is
+    symmetric under ``y → −y``, so its ``sin mφ`` rows are 0) and interpolated per sample
+    (4-point Lagrange). With ``R_p`` the sample's local-to-world rotation (columns: the
+    tangent toward ``ωo``, ``n × t``, ``n``), ``Y_l(R ω') = D^l(R) Y_l(ω')``
+    (:mod:`brdfcap.fit.rotation`) gives ``D_{p,l·} = D^l(R_p) c_l(γ_p)``, applied as ZYZ Euler
+    rotations ``Z(a) J Z(b) Jᵀ Z(c)`` by :class:`~brdfcap.fit.rotation.ZYZRotator` (the
+    J-matrix factorisation, Pinchon & Hoggan 2007; ``J`` the 90° rotation's Wigner blocks,
+    Ivanic & Ruedenberg 1996). Samples are taken in order of ``γ`` in chunks of
+    ``~ROTATE_CHUNK_VALUES / K``, so a chunk's interpolation is one product of a few table
+    columns with its sparse weights. Cost: ``angles / 2 ×`` the direct rule for the table plus
+    ``~Σ_l (2l+1)² + 20 K`` flops per sample. Anisotropic models are not supported (none is
+    registered).
     """
     normal = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
     r = reflected.to(torch.float64)
@@ -321,18 +364,19 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     wo = 2.0 * cg[:, None] * normal - r
     gam = torch.arccos(cg.clamp(0.0, 1.0))
     gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
-    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64)
+    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64, device=normal.device)
     z = torch.zeros_like(grid)
     cn = torch.stack([z, z, torch.ones_like(grid)], -1)
     cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
-    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine)  # (G, K) or (G, C, K)
+    # (G, K) or (G, C, K); n and r in the x-z plane, an isotropic lobe symmetric about it
+    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine, mirror=True)
     # 4-point Lagrange weights on the uniform grid
     h = gmax / (angles - 1)
     u = gam / h
     i0 = (u.floor().long() - 1).clamp(0, angles - 4)
     t = u - i0.to(u.dtype)  # position in node units from node i0, in [0, 3]
-    nodes = torch.arange(4, dtype=torch.float64)
-    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64)
+    nodes = torch.arange(4, dtype=torch.float64, device=normal.device)
+    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64, device=normal.device)
     for j in range(4):
         for k in range(4):
             if k != j:
@@ -343,65 +387,54 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     tn = tang.norm(dim=-1, keepdim=True)
     tang = torch.where(tn > 1e-9, tang / tn.clamp_min(1e-300), fallback)
     rot = torch.stack([tang, torch.linalg.cross(normal, tang), normal], -1)  # columns
-    k = (lmax + 1) ** 2
-    # ZYZ Euler angles of each frame, R = Rz(a) Ry(b) Rz(c); Ry(b) = M Rz(b) Mᵀ with
-    # M = Rx(−90°) (takes z to y), so D(R) = Z(a) D(M) Z(b) D(M)ᵀ Z(c): z-rotations mix the
-    # (m, −m) pairs, D(M) is one fixed block per band
-    b_ang = torch.arccos(normal[:, 2].clamp(-1.0, 1.0))
-    a_ang = torch.atan2(normal[:, 1], normal[:, 0])
-    q = _rot_z(-b_ang, 1) @ _rot_z(-a_ang, 2) @ rot
-    c_ang = torch.atan2(q[:, 1, 0], q[:, 0, 0])
-    m_fixed = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
-                           dtype=torch.float64)
-    jb = wigner_d_real_blocks(m_fixed, lmax)
+    euler = torch.stack(zyz_angles(rot))  # (3, N): R = Rz(a) Ry(b) Rz(c)
+    rotator = zyz_rotator(lmax, torch.float64, normal.device)
+    # samples in order of γ: a chunk then needs only the few table angles around its own,
+    # and the interpolation is one small product (table columns × sparse weights)
+    order = torch.argsort(gam)
+    i0s, wts_s, euler_s = i0[order], wts[order].T.contiguous(), euler[:, order].contiguous()
+    taps = torch.arange(4, device=normal.device)
 
-    def rotate(table):
-        out = normal.new_zeros((normal.shape[0],) + table.shape[1:])
-        for s in range(0, normal.shape[0], chunk):
-            e = min(s + chunk, normal.shape[0])
-            idx = i0[s:e, None] + torch.arange(4)
-            c = (table[idx] * wts[s:e].reshape(e - s, 4, *([1] * (table.ndim - 1)))).sum(1)
-            for l in range(lmax + 1):
-                sl = slice(l * l, (l + 1) ** 2)
-                v = _z_band(c[..., sl], c_ang[s:e], l)
-                v = v @ jb[l]  # D(M)ᵀ v, rows as vectors
-                v = _z_band(v, b_ang[s:e], l)
-                v = v @ jb[l].T
-                out[s:e, ..., sl] = _z_band(v, a_ang[s:e], l)
-        return out
+    def rotate_range(tab, outs, start, stop):
+        nb = tab.shape[1]
+        buf_all = tab.new_empty((min(chunk, stop - start), rotator.dst.shape[0]))
+        for s in range(start, stop, chunk):
+            e = min(s + chunk, stop)
+            ids, i0c = order[s:e], i0s[s:e]
+            lo, hi = int(i0c[0]), int(i0c[-1]) + 4  # sorted
+            w = tab.new_zeros(hi - lo, e - s)
+            w.scatter_(0, (i0c - lo)[None, :] + taps[:, None], wts_s[:, s:e])
+            x = tab.new_empty(tab.shape[0], nb, e - s)
+            torch.mm(tab[: rotator.half, :, lo:hi].reshape(rotator.half * nb, hi - lo), w,
+                     out=x[: rotator.half].view(rotator.half * nb, e - s))
+            x = rotator.from_layout(rotator.rotate_(x, *euler_s[:, s:e], even=True))
+            buf = buf_all[: e - s]
+            for b, out in enumerate(outs):
+                buf.copy_(x[:, b].T)  # then whole rows: far cheaper than strided
+                out[ids] = buf
 
-    assert ta.shape[-1] == k
-    return rotate(ta), (None if tq is None else rotate(tq))
-
-
-def _rot_z(ang: torch.Tensor, axis: int) -> torch.Tensor:
-    """``(P, 3, 3)`` rotations by ``ang`` about z (``axis = 2``) or y (``axis = 1``)."""
-    c, s = torch.cos(ang), torch.sin(ang)
-    o, z = torch.ones_like(ang), torch.zeros_like(ang)
-    if axis == 2:
-        rows = [[c, -s, z], [s, c, z], [z, z, o]]
-    else:
-        rows = [[c, z, s], [z, o, z], [-s, z, c]]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
-
-
-def _z_band(v: torch.Tensor, ang: torch.Tensor, l: int) -> torch.Tensor:
-    """Band-``l`` coefficients ``(P, ..., 2l+1)`` of ``f(Rz(ang)ᵀ ω)`` (real SH, index ``l+m``).
-
-    ``Y_lm ∝ cos mφ``, ``Y_l,−m ∝ sin mφ`` (docs/conventions.md), so ``c_m → cos(mα) c_m −
-    sin(mα) c_−m`` and ``c_−m → sin(mα) c_m + cos(mα) c_−m``.
-    """
-    if l == 0:
-        return v
-    m = torch.arange(1, l + 1, dtype=v.dtype, device=v.device)
-    shape = (ang.shape[0],) + (1,) * (v.ndim - 2) + (l,)
-    cs = torch.cos(ang[:, None] * m).reshape(shape)
-    sn = torch.sin(ang[:, None] * m).reshape(shape)
-    pos, neg = v[..., l + 1:], v[..., :l].flip(-1)  # c_m and c_−m for m = 1..l
-    out = v.clone()
-    out[..., l + 1:] = cs * pos - sn * neg
-    out[..., :l] = (sn * pos + cs * neg).flip(-1)
-    return out
+    assert ta.shape[-1] == (lmax + 1) ** 2
+    # every table (a, per channel if not affine; q) in one rotation pass: B vectors a sample
+    a = normal.new_empty((normal.shape[0],) + ta.shape[1:])
+    tables, outs = ([ta], [a]) if ta.ndim == 2 else (list(ta.unbind(1)), list(a.unbind(1)))
+    q = None
+    if tq is not None:
+        q = normal.new_empty((normal.shape[0], tq.shape[-1]))
+        tables.append(tq)
+        outs.append(q)
+    if chunk is None:  # a chunk's working rows (~4 MB) stay in cache (512-1024 best at L 16)
+        chunk = max(128, ROTATE_CHUNK_VALUES // ((lmax + 1) ** 2 * len(tables)))
+    tab = torch.stack([rotator.to_layout(t) for t in tables], 1)  # (K', B, G)
+    # on one torch thread: the chunks' operations are small (per-band products of a few rows)
+    # and splitting each over OpenMP threads cost 4-5x the wall time (6 x 256², Phong, L 16:
+    # 14.4 s at two threads against 3.1 s at one, bench/RESULTS.md)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rotate_range(tab, outs, 0, normal.shape[0])
+    finally:
+        torch.set_num_threads(threads)
+    return a, q
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:

@@ -132,6 +132,39 @@ def test_rotated_table_equals_direct_rule(name, params):
     assert float((a - a2).abs().max()) < 1e-5 * float(a.abs().max())
     if q is not None:
         assert float((q - q2).abs().max()) < 1e-5 * float(q.abs().max())
+    # the same rows from small chunks at two torch threads
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        a3, q3 = exact_rows_rotated(m, n, r, 6, chunk=8)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.get_num_threads() == threads
+    for x, y in ((a3, a2),) + (((q3, q2),) if q is not None else ()):
+        assert float((x - y).abs().max()) < 1e-13 * float(y.abs().max())
+
+
+@pytest.mark.parametrize("name,params", [("phong", {"ks": [1.0], "s": 16.0}),
+                                         ("beckmann", {"f0": [0.3], "sigma": 0.2})])
+def test_mirror_half_rule_equals_full_rule(name, params):
+    """The canonical table's half rule (``mirror=True``: one side of the plane of ``n`` and
+    ``r``, weights doubled, sine rows 0) equals the full rule on samples in the x–z plane,
+    exitance 0 to 89° (odd and even node counts in φ both occur over L 5 and 6).
+    """
+    g = torch.linspace(0.0, math.radians(89.0), 23, dtype=torch.float64)
+    z = torch.zeros_like(g)
+    n = torch.stack([z, z, torch.ones_like(g)], -1)
+    r = torch.stack([-g.sin(), z, g.cos()], -1)
+    m = make_brdf(name, kd=[0.0], **params)
+    for lmax in (5, 6):
+        full = [x for x in exact_rows_direct(m, n, r, lmax) if x is not None]
+        half = [x for x in exact_rows_direct(m, n, r, lmax, mirror=True) if x is not None]
+        assert len(full) == len(half)
+        for a, b in zip(full, half):
+            assert float((a - b).abs().max()) < 1e-12 * float(a.abs().max())
+    with pytest.raises(ValueError, match="x-z plane"):
+        exact_rows_direct(m, n, torch.stack([-g.sin(), 0.1 * g.sin(), g.cos()], -1), 4,
+                          mirror=True)
 
 
 def _sh_probe(light: torch.Tensor, lmax: int, h: int = 128) -> torch.Tensor:
