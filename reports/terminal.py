@@ -23,10 +23,14 @@ def _ill_bands(results: dict) -> list[int]:
 
 
 def _prior_dominated_bands(results: dict) -> list[int]:
-    """Withheld lighting bands whose uncertainty the prior, not the images, sets (issue 12)."""
+    """Withheld lighting bands whose uncertainty the prior, not the images, sets (issue 12).
+
+    Unobservable bands (a BRDF filter exactly 0, e.g. Lambertian odd l >= 3) are left out: no
+    number of views determines them, and the band table says why.
+    """
     return [b["l"] for b in ((results.get("lighting") or {}).get("bands") or [])
             if b.get("prior_dominated") and not b.get("determined", True)
-            and not b.get("bounded")]
+            and not b.get("bounded") and b.get("observable", True)]
 
 
 def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) -> list[str]:

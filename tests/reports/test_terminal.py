@@ -40,8 +40,10 @@ def test_prior_dominated_bands_named_with_the_remedy(tmp_path):
     bands = [{"l": 0, "ill_conditioned": True, "determined": False, "prior_dominated": True},
              {"l": 1, "ill_conditioned": True, "determined": False, "prior_dominated": True},
              {"l": 2, "ill_conditioned": True, "determined": False, "prior_dominated": False},
-             {"l": 3, "ill_conditioned": False, "determined": True, "prior_dominated": True}]
-    out = "\n".join(terminal_lines({"capture": "x", "lighting": {"lmax": 3, "bands": bands}},
+             {"l": 3, "ill_conditioned": False, "determined": True, "prior_dominated": True},
+             {"l": 4, "ill_conditioned": True, "determined": False, "prior_dominated": True,
+              "observable": False}]  # a filter exactly 0: no number of views determines it
+    out = "\n".join(terminal_lines({"capture": "x", "lighting": {"lmax": 4, "bands": bands}},
                                    tmp_path))
     assert "set by the prior, not the images: l = 0, 1 (" in out and "more views" in out, out
     for b in bands:
