@@ -58,7 +58,8 @@ from .sh import real_sh
 __all__ = ["ExactRows", "exact_rows", "horizon_clamped", "exact_rows_direct",
            "exact_rows_rotated", "TABLE_ANGLES", "lobe_extent", "lobe_bandwidth", "node_counts",
            "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
-           "CONVERGENCE_TOL", "CHUNK_BYTES"]
+           "CONVERGENCE_TOL", "CHUNK_BYTES", "rule_extent", "rule_nodes", "exitance_grid",
+           "lagrange4"]
 
 #: The lighting problem's specular designs: ``exact`` (this module) and ``rh`` (R&H 2001's form).
 DESIGNS = ("exact", "rh")
@@ -179,8 +180,53 @@ def horizon_clamped(model: BRDFModel) -> bool:
     return not bool((model.eval_specular_cos(n, d, wo) != 0).any())
 
 
-def _nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int,
-           clip: bool = True, mirror: bool = False):
+def rule_extent(model: BRDFModel) -> tuple[float, bool]:
+    """``(θ_lobe, clip)`` of the rule: the lobe's radius about ``r`` and the horizon clamp.
+
+    A model clamped at the horizon (:func:`horizon_clamped`) takes :func:`lobe_extent` at
+    normal exitance; one that is not, the radius scanned over the whole sphere.
+    """
+    clip = horizon_clamped(model)
+    return (lobe_extent(model) if clip else _lobe_extent_full(model)), clip
+
+
+def exitance_grid(gam: torch.Tensor, angles: int
+                  ) -> tuple[float, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Canonical samples at ``angles`` uniform exitance angles ``γ`` on ``[0, max gam]``.
+
+    Returns ``(γ_max, γ grid, n, r, ωo)``, each direction ``(angles, 3)``: ``n = z``,
+    ``r = (−sin γ, 0, cos γ)``, ``ωo = (sin γ, 0, cos γ)`` (all in the x–z plane, the
+    ``mirror`` rule of :func:`exact_rows_direct` applies).
+    """
+    gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
+    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64, device=gam.device)
+    z = torch.zeros_like(grid)
+    cn = torch.stack([z, z, torch.ones_like(grid)], -1)
+    cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
+    cwo = torch.stack([torch.sin(grid), z, torch.cos(grid)], -1)
+    return gmax, grid, cn, cr, cwo
+
+
+def lagrange4(gam: torch.Tensor, gmax: float, angles: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return ``(i0, weights (N, 4))``: 4-point Lagrange interpolation at ``gam``.
+
+    On the uniform grid of :func:`exitance_grid` (taps ``i0 … i0 + 3``; needs ``angles ≥ 4``).
+    """
+    h = gmax / (angles - 1)
+    u = gam / h
+    i0 = (u.floor().long() - 1).clamp(0, angles - 4)
+    t = u - i0.to(u.dtype)  # position in node units from node i0, in [0, 3]
+    nodes = torch.arange(4, dtype=torch.float64, device=gam.device)
+    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64, device=gam.device)
+    for j in range(4):
+        for k in range(4):
+            if k != j:
+                wts[:, j] = wts[:, j] * (t - nodes[k]) / (nodes[j] - nodes[k])
+    return i0, wts
+
+
+def rule_nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int,
+               clip: bool = True, mirror: bool = False):
     """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc).
 
     ``clip=False`` (a model not clamped at the horizon): whole rings to ``θ_lobe``.
@@ -288,10 +334,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
         raise ValueError("exact_rows_direct(mirror=True) needs every normal and reflected "
                          "direction in the x-z plane (y = 0); pass mirror=False")
     wo = 2.0 * (normal * r).sum(-1, keepdim=True) * normal - r
-    th_lobe = lobe_extent(model)
-    clip = horizon_clamped(model)
-    if not clip:
-        th_lobe = _lobe_extent_full(model)
+    th_lobe, clip = rule_extent(model)
     nt, nphi = node_counts(lmax, lobe_bandwidth(model), th_lobe, refine)
     m = 2 * nt * ((nphi + 1) // 2 if mirror else nphi)
     k = (lmax + 1) ** 2
@@ -306,7 +349,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     def work(start, stop):
         for s in range(start, stop, step):
             e = min(s + step, stop)
-            d, w = _nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip, mirror)
+            d, w = rule_nodes(normal[s:e], r[s:e], th_lobe, nt, nphi, clip, mirror)
             p = e - s
             nn = normal[s:e, None].expand(p, m, 3).reshape(-1, 3)
             ww = wo[s:e, None].expand(p, m, 3).reshape(-1, 3)
@@ -363,24 +406,10 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     cg = (normal * r).sum(-1).clamp(-1.0, 1.0)
     wo = 2.0 * cg[:, None] * normal - r
     gam = torch.arccos(cg.clamp(0.0, 1.0))
-    gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
-    grid = torch.linspace(0.0, gmax, angles, dtype=torch.float64, device=normal.device)
-    z = torch.zeros_like(grid)
-    cn = torch.stack([z, z, torch.ones_like(grid)], -1)
-    cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
+    gmax, _, cn, cr, _ = exitance_grid(gam, angles)
     # (G, K) or (G, C, K); n and r in the x-z plane, an isotropic lobe symmetric about it
     ta, tq = exact_rows_direct(model, cn, cr, lmax, refine, mirror=True)
-    # 4-point Lagrange weights on the uniform grid
-    h = gmax / (angles - 1)
-    u = gam / h
-    i0 = (u.floor().long() - 1).clamp(0, angles - 4)
-    t = u - i0.to(u.dtype)  # position in node units from node i0, in [0, 3]
-    nodes = torch.arange(4, dtype=torch.float64, device=normal.device)
-    wts = torch.ones(gam.shape[0], 4, dtype=torch.float64, device=normal.device)
-    for j in range(4):
-        for k in range(4):
-            if k != j:
-                wts[:, j] = wts[:, j] * (t - nodes[k]) / (nodes[j] - nodes[k])
+    i0, wts = lagrange4(gam, gmax, angles)
     # local frames: t along the tangential part of ωo (any tangent at γ = 0)
     tang = wo - cg[:, None] * normal
     fallback, _ = orthonormal_basis(normal)

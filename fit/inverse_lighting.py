@@ -38,13 +38,13 @@ from .exact_design import (
     DESIGNS,
     TABLE_ANGLES,
     ExactRows,
-    _lobe_extent_full,
-    _nodes,
     exact_design_applies,
-    horizon_clamped,
+    exitance_grid,
+    lagrange4,
     lobe_bandwidth,
-    lobe_extent,
     node_counts,
+    rule_extent,
+    rule_nodes,
 )
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
@@ -469,14 +469,8 @@ def kernel_power(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor, 
     n = normal.to(dt)
     cg = (n * reflected.to(dt)).sum(-1).clamp(0.0, 1.0)
     gam = torch.arccos(cg)
-    gmax = max(float(gam.max()), 1e-6) if gam.numel() else 1e-6
-    grid = torch.linspace(0.0, gmax, angles, dtype=dt)
-    z = torch.zeros_like(grid)
-    cn = torch.stack([z, z, torch.ones_like(grid)], -1)
-    cr = torch.stack([-torch.sin(grid), z, torch.cos(grid)], -1)
-    cwo = torch.stack([torch.sin(grid), z, torch.cos(grid)], -1)
-    clip = horizon_clamped(model)
-    th = lobe_extent(model) if clip else _lobe_extent_full(model)
+    gmax, _, cn, cr, cwo = exitance_grid(gam, angles)
+    th, clip = rule_extent(model)
     lb = lobe_bandwidth(model)
     nt, nphi = node_counts(max(lmax, lb), lb, th)
     kd = spec.kd.to(dt)
@@ -484,7 +478,7 @@ def kernel_power(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor, 
     step = max(1, (1 << 22) // (2 * nt * nphi))
     for s in range(0, angles, step):
         e = min(s + step, angles)
-        d, w = _nodes(cn[s:e], cr[s:e], th, nt, nphi, clip)
+        d, w = rule_nodes(cn[s:e], cr[s:e], th, nt, nphi, clip)
         p, m = d.shape[:2]
         f = model.eval_specular_cos(cn[s:e, None].expand(p, m, 3).reshape(-1, 3),
                                     d.reshape(-1, 3),
@@ -495,14 +489,7 @@ def kernel_power(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor, 
             + 2.0 * kd / math.pi * torch.einsum("pm,pmc->pc", w * cos, f)
     if angles < 4:
         return table[torch.zeros_like(gam, dtype=torch.long)]
-    u = gam / (gmax / (angles - 1))
-    i0 = (u.floor().long() - 1).clamp(0, angles - 4)
-    t = u - i0.to(dt)
-    wts = torch.ones(gam.shape[0], 4, dtype=dt)
-    for j in range(4):
-        for k in range(4):
-            if k != j:
-                wts[:, j] = wts[:, j] * (t - k) / (j - k)
+    i0, wts = lagrange4(gam, gmax, angles)
     return (table[i0[:, None] + torch.arange(4)] * wts[..., None]).sum(1)
 
 
