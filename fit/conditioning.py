@@ -281,6 +281,22 @@ PRIOR_WEAKENING = 10.0
 PRIOR_DOMINATED_RATIO = 2.0
 
 
+def _precision_less_prior(cov: torch.Tensor, prior_variance: torch.Tensor, fraction: float
+                          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(P, d)``: the precision ``cov⁻¹`` less ``fraction`` of the prior precision, scaled.
+
+    ``cov`` is scaled to unit diagonal first (``d = diag^{-1/2}``; well scaled for the
+    inversions), so ``P`` is in those units: the covariance it stands for is
+    ``P⁻¹ / (d dᵀ)``. Symmetrised. The prior precision is ``diag(1/prior_variance)`` (MacKay
+    1992 eq. 2.13: removing a fraction of it weakens the prior, all of it removes it).
+    """
+    cv = 0.5 * (cov + cov.T)
+    d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
+    prec = torch.linalg.inv(cv * d[:, None] * d[None, :])
+    out = prec - torch.diag(fraction / prior_variance.clamp_min(1e-300) / d ** 2)
+    return 0.5 * (out + out.T), d
+
+
 def band_data_only_covariance(sol: LinearSolution, sel: torch.Tensor,
                               c: int) -> torch.Tensor | None:
     r"""Covariance of one band's coefficients from the data alone, or ``None`` if unbounded.
@@ -293,17 +309,8 @@ def band_data_only_covariance(sol: LinearSolution, sel: torch.Tensor,
     ``None`` where that matrix is not positive definite (the data do not bound the band).
     """
     idx = torch.nonzero(sel).flatten()
-    ix = (idx[:, None], idx[None, :])
-    cv = sol.covariance[c][ix]
-    cv = 0.5 * (cv + cv.T)
-    d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
-    cs = cv * d[:, None] * d[None, :]
-    try:
-        prec = torch.cholesky_inverse(torch.linalg.cholesky(cs))
-    except torch.linalg.LinAlgError:
-        return None
-    data = prec - torch.diag(1.0 / sol.bayes.prior_variance[idx, c].clamp_min(1e-300) / d ** 2)
-    data = 0.5 * (data + data.T)
+    data, d = _precision_less_prior(sol.covariance[c][idx[:, None], idx[None, :]],
+                                    sol.bayes.prior_variance[idx, c], 1.0)
     try:
         ch = torch.linalg.cholesky(data)
     except torch.linalg.LinAlgError:
@@ -363,13 +370,8 @@ def weak_prior_variance(sol: LinearSolution, kappa: float = PRIOR_WEAKENING) -> 
                 * bx.noise_scale[:, None]).T
     out = torch.empty_like(bx.posterior_variance)
     for c in range(sol.covariance.shape[0]):
-        cv = 0.5 * (sol.covariance[c] + sol.covariance[c].T)
-        d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
-        cs = cv * d[:, None] * d[None, :]  # unit diagonal: well scaled for the inversions
-        prec = torch.linalg.inv(cs)
-        lam_p = (1.0 - 1.0 / kappa) / bx.prior_variance[:, c].clamp_min(1e-300) / d ** 2
-        weak = prec - torch.diag(lam_p)
-        weak = 0.5 * (weak + weak.T)
+        weak, d = _precision_less_prior(sol.covariance[c], bx.prior_variance[:, c],
+                                        1.0 - 1.0 / kappa)
         try:
             wc = torch.cholesky_inverse(torch.linalg.cholesky(weak))
         except torch.linalg.LinAlgError:
