@@ -414,9 +414,19 @@ def truth_rows(gt: dict, results: dict) -> dict:
                                   f"{b['n_determined']} of {b['n']}",
                                   fmt_num(b.get("max_abs_z"), 2),
                                   fmt_num(mz2, 2),
-                                  "—" if mz2 is None else ("consistent" if mz2 < 4 else
-                                                           "biased (regularised or misfit)")])
+                                  _truth_verdict(b)])
     return rows
+
+
+def _truth_verdict(band: dict) -> str:
+    """Verdict of one band against the truth: z-scores, or a bounded band's claim."""
+    if "bound_holds" in band:  # a bounded band claims "no power above X" (fit/conditioning.py)
+        return "bounded: true norm below the bound" if band["bound_holds"] else \
+            "bounded, but the true norm is above the bound"
+    mz2 = band.get("mean_z2")
+    if mz2 is None:
+        return "—"
+    return "consistent" if mz2 < 4 else "biased (regularised or misfit)"
 
 
 def read_truth(capture_dir: str | Path) -> dict | None:
