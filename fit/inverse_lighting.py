@@ -473,7 +473,7 @@ def kernel_power(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor, 
     th, clip = rule_extent(model)
     lb = lobe_bandwidth(model)
     nt, nphi = node_counts(max(lmax, lb), lb, th)
-    kd = spec.kd.to(dt)
+    kd = spec.kd.to(dtype=dt, device=n.device)
     table = (2.0 * kd ** 2 / (3.0 * math.pi)).expand(angles, kd.numel()).clone()
     step = max(1, (1 << 22) // (2 * nt * nphi))
     for s in range(0, angles, step):
@@ -490,7 +490,7 @@ def kernel_power(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor, 
     if angles < 4:
         return table[torch.zeros_like(gam, dtype=torch.long)]
     i0, wts = lagrange4(gam, gmax, angles)
-    return (table[i0[:, None] + torch.arange(4)] * wts[..., None]).sum(1)
+    return (table[i0[:, None] + torch.arange(4, device=i0.device)] * wts[..., None]).sum(1)
 
 
 def truncation_power(design, scale: torch.Tensor | None, power: torch.Tensor,
