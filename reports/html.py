@@ -17,6 +17,7 @@ from .views import (
     brdf_parameter_rows,
     check_rows,
     conditioning_rows,
+    gauge_table,
     headline,
     is_number_list,
     truth_rows,
@@ -138,6 +139,7 @@ def render_report(inp: ReportInputs) -> str:
         "brdf_checks": check_rows(brdf),
         "conditioning": conditioning_rows(r),
         "truth": truth_rows(r["ground_truth"], r) if r.get("ground_truth") else None,
+        "gauge": gauge_table(r),
         "panels": inp.figures.get("panels"),
         "n_images": len(r.get("images") or []),
     }

@@ -19,7 +19,7 @@ from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
 
 __all__ = ["headline", "brdf_parameter_rows", "conditioning_rows", "truth_comparison",
            "rh_citation", "band_rows", "is_number_list", "truth_rows", "read_truth",
-           "check_rows"]
+           "check_rows", "gauge_table"]
 
 
 def is_number_list(x) -> bool:
@@ -439,3 +439,59 @@ def read_truth(capture_dir: str | Path) -> dict | None:
     except (OSError, ValueError):
         return None
     return d if isinstance(d, dict) else None
+
+
+#: How each kind of gauge-invariant product reads (:func:`brdfcap.fit.bilinear._gauge_invariant`;
+#: R&H 2001 §5 and eq. 8).
+_GAUGE_KINDS = {"dc": "(kd + f₀) L₀₀", "specular": "f_l L_lm", "diffuse": "kd Â_l/π L_lm"}
+
+
+def gauge_table(results: dict) -> dict | None:
+    """Rows of the gauge-invariant products of ``--problem both`` for the report, or ``None``.
+
+    Returns ``{"channels": [...], "rows": [[product, l, m, value ± error per channel, status]],
+    "bands": [[product, l, determined/total, status]], "definition": str}``. A product an
+    ambiguity moves gets "moved by null direction k (what it touches)" instead of an interval:
+    the values of the factors are in the fit's gauge, these products are not (R&H 2001 §5).
+    """
+    gi = results.get("gauge_invariant") or {}
+    qs = gi.get("quantities") or []
+    if not qs:
+        return None
+    se = list(gi.get("stderr") or [])
+    det = list(gi.get("determined") or [])
+    touched = list(gi.get("touched_by_null_direction") or [])
+    nulls = next((a.get("null_directions") for a in results.get("ambiguities") or []
+                  if a.get("null_directions")), None) or []
+    nch = 1 + max(int(q.get("channel", 0)) for q in qs)
+    cells: dict[tuple[str, int, int], list] = {}
+    for i, q in enumerate(qs):
+        key = (q.get("kind", "?"), int(q.get("l", 0)), int(q.get("m", 0)))
+        row = cells.setdefault(key, [None] * nch)
+        e = se[i] if i < len(se) else None
+        d = bool(det[i]) if i < len(det) else False
+        row[int(q.get("channel", 0))] = (q.get("value"), e if d else math.inf,
+                                         tuple(touched[i]) if i < len(touched) else ())
+
+    def status(moved: set[int]) -> str:
+        if not moved:
+            return "determined"
+        return "; ".join(f"moved by null direction {j + 1}"
+                         + (f" ({', '.join(nulls[j])})" if j < len(nulls) else "")
+                         for j in sorted(moved))
+
+    rows, bands = [], {}
+    for (kind, l, m), per in cells.items():
+        moved = {j for c in per if c for j in c[2]}
+        rows.append([_GAUGE_KINDS.get(kind, kind), str(l), str(m)]
+                    + [fmt_pm(c[0], c[1]) if c else "—" for c in per] + [status(moved)])
+        b = bands.setdefault((kind, l), [0, 0, set()])
+        b[0] += sum(1 for c in per if c and not c[2])
+        b[1] += sum(1 for c in per if c)
+        b[2] |= moved
+    band_rows_ = [[_GAUGE_KINDS.get(k, k), str(l), f"{n} of {t}",
+                   status(mv) if n in (0, t) else f"the other {t - n}: {status(mv)}"]
+                  for (k, l), (n, t, mv) in bands.items()]
+    names = ["R", "G", "B"] if nch == 3 else [f"channel {c}" for c in range(nch)]
+    return {"channels": names, "rows": rows, "bands": band_rows_,
+            "definition": gi.get("definition", "")}

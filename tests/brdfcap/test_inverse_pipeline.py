@@ -104,7 +104,17 @@ def test_problem_both_reports_ambiguities(captures, tmp_path):
     r = _run(captures["env"], tmp_path / "o", "--problem", "both", "--lmax", "3",
              "--brdf-lmax", "3")
     assert {a["name"] for a in r["ambiguities"]} >= {"global scale"}
-    assert "Ambiguities" in (tmp_path / "o" / "report.html").read_text()
+    html = (tmp_path / "o" / "report.html").read_text()
+    assert "Ambiguities" in html
+    # the gauge-invariant products have their own table: one row per (product, l, m), and
+    # the determined count per band agrees with results.json
+    gi = r["gauge_invariant"]
+    assert 'id="gauge"' in html
+    n_lm = len({(q["kind"], q["l"], q["m"]) for q in gi["quantities"]})
+    assert html.count("moved by null direction") + html.count(">determined<") >= n_lm
+    n_det = sum(bool(d) for d in gi["determined"])
+    counts = [int(x) for x in re.findall(r"<td>(\d+) of \d+</td>", html)]
+    assert sum(counts) == n_det
 
 
 def test_problem_brdf_isotropic_run_option(captures, tmp_path):
