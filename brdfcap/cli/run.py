@@ -153,9 +153,10 @@ def _batch_echo(line: str) -> None:
 @click.option("--brdf", type=click.Choice(BRDF_NAMES),  # the BRDF-model registry
               default=None, help="BRDF model (default: capture.toml [material].model).")
 @click.option("--rule", type=click.Choice(["gcv", "discrepancy", "none"]), default="gcv",
-              show_default=True, help="How the Tikhonov weight is chosen in problems brdf, both and "
-                                 "decomposition (docs/fitting.md); problem lighting sets its "
-                                 "prior by marginal likelihood and ignores it.")
+              show_default=True,
+              help="How the Tikhonov weight is chosen in problems brdf, both and decomposition "
+                   "(docs/fitting.md); problem lighting sets its prior by marginal likelihood "
+                   "and ignores it.")
 @click.option("--brdf-lmax", type=click.IntRange(0, 200), default=8, show_default=True,
               help="Highest band of SH-domain BRDF filters (problems brdf/both).")
 @click.option("--design", type=click.Choice(["exact", "rh"]), default="exact",
