@@ -63,7 +63,9 @@ __all__ = ["RunOptions", "RunContext", "RunOutcome", "run_capture", "fit_capture
 class RunOptions:
     """Options of ``brdfcap run`` that change results."""
 
-    lmax: int = 2
+    #: highest lighting band, or "auto" (problems lighting and auto under an environment: the
+    #: band the data determine, fit.conditioning.suggest_lmax)
+    lmax: int | str = 2
     #: torch device of samples and fit: "auto" (CUDA when present, else CPU), "cpu",
     #: "cuda", "cuda:N" (brdfcap.core.device.resolve_device); results.json "device" is
     #: the resolved one
@@ -152,6 +154,10 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
     """Run the registered problem ``options.problem`` on ``samples``."""
     if len(samples) == 0:
         raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
+                       capture.config.toml_path)
+    if options.lmax == "auto" and options.problem not in ("auto", "lighting"):
+        raise FitError(f"lmax 'auto': only problems lighting and auto choose the band from the "
+                       f"data; give an integer lmax for problem {options.problem}",
                        capture.config.toml_path)
     fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
                           brdf_lmax=options.brdf_lmax, design=options.design)

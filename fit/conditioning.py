@@ -540,10 +540,13 @@ def suggest_lmax(rows: list[dict]) -> int:
 
     Unobservable bands (a filter exactly 0, e.g. Lambertian odd l >= 3) do not stop the
     suggestion: their coefficients are reported as unobservable whatever lmax is asked for.
+    Neither do *bounded* bands ("determined: no power above X", :func:`zero_band_bound`), as
+    for ``ill_conditioned_from_l``; but the suggestion does not end on one: a band
+    reported is then determined or bounded below a determined band.
     """
     best = -1
     for r in rows:
-        if not r.get("observable", True):
+        if not r.get("observable", True) or r.get("bounded"):
             continue
         if not r["determined"]:
             break

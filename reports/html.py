@@ -20,6 +20,7 @@ from .views import (
     gauge_table,
     headline,
     is_number_list,
+    lmax_suggestion,
     truth_rows,
 )
 
@@ -140,6 +141,7 @@ def render_report(inp: ReportInputs) -> str:
         "conditioning": conditioning_rows(r),
         "truth": truth_rows(r["ground_truth"], r) if r.get("ground_truth") else None,
         "gauge": gauge_table(r),
+        "lmax_suggestion": lmax_suggestion(r),
         "panels": inp.figures.get("panels"),
         "n_images": len(r.get("images") or []),
     }

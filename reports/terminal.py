@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 
 from .numbers import fmt_num
-from .views import headline
+from .views import headline, lmax_suggestion
 
 __all__ = ["terminal_lines", "terminal_record"]
 
@@ -55,6 +55,9 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
                      "e.g. behind the object in one view, which more views, not less noise, would "
                      "determine)")
     lines.append(f"  model adequacy: {h['verdict'][1]}")
+    sug = lmax_suggestion(results)
+    if sug:
+        lines.append(f"  suggested lmax: {sug}")
     ct = (results.get("aldrian_smith") or {}).get("colour_transform")
     if ct:  # which reference identified Aldrian & Smith's colour transform, or none
         lines.append(f"  colour transform M, o: {ct.get('source')}"
@@ -99,6 +102,7 @@ def terminal_record(results: dict, out_dir: str | Path) -> dict:
             "lmax": lt.get("lmax"), "L00": (lt.get("coefficients") or [None])[0],
             "L00_stderr": (lt.get("stderr") or [None])[0],
             "ill_conditioned_from_l": lt.get("ill_conditioned_from_l"),
+            "suggested_lmax": lt.get("suggested_lmax"),
             "ill_bands": _ill_bands(results)},
         "brdf": {k: (results.get("brdf") or {}).get(k) for k in ("model", "parameters",
                                                                   "stderr")},

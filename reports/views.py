@@ -19,7 +19,7 @@ from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
 
 __all__ = ["headline", "brdf_parameter_rows", "conditioning_rows", "truth_comparison",
            "rh_citation", "band_rows", "is_number_list", "truth_rows", "read_truth",
-           "check_rows", "gauge_table"]
+           "check_rows", "gauge_table", "lmax_suggestion"]
 
 
 def is_number_list(x) -> bool:
@@ -495,3 +495,24 @@ def gauge_table(results: dict) -> dict | None:
     names = ["R", "G", "B"] if nch == 3 else [f"channel {c}" for c in range(nch)]
     return {"channels": names, "rows": rows, "bands": band_rows_,
             "definition": gi.get("definition", "")}
+
+
+def lmax_suggestion(results: dict) -> str | None:
+    """One sentence suggesting ``--lmax`` from the fit's ``suggested_lmax``, or ``None``.
+
+    Problem 1 (Bayesian fit) solves above the requested band and reports the highest band up to
+    which every observable band is determined or bounded (``conditioning.suggest_lmax``); said
+    only when it differs from the band asked for.
+    """
+    lt = results.get("lighting") or {}
+    sug, req = lt.get("suggested_lmax"), lt.get("lmax")
+    if not isinstance(sug, int) or not isinstance(req, int) or sug == req:
+        return None
+    if sug < 0:
+        return ("no lighting band is determined by these images, not even l = 0: more views "
+                "(or a known albedo) before any --lmax")
+    if sug > req:
+        return (f"the images determine every observable band up to l = {sug}: --lmax {sug} "
+                f"(or --lmax auto) would report them")
+    return (f"the images determine every observable band only up to l = {sug}: --lmax {sug} "
+            f"(or --lmax auto) reports just what they determine")

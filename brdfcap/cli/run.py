@@ -130,6 +130,26 @@ def _batch_echo(line: str) -> None:
     tqdm.write(line, file=sys.stderr if line.startswith("error") else sys.stdout)
 
 
+class LmaxType(click.ParamType):
+    """``--lmax``: an integer band 0–200, or ``auto`` (the band the data determine)."""
+
+    name = "INTEGER|auto"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, int) and not isinstance(value, bool):
+            v = value
+        elif isinstance(value, str) and value.strip().lower() == "auto":
+            return "auto"
+        else:
+            try:
+                v = int(str(value).strip())
+            except ValueError:
+                self.fail(f"{value!r} is neither an integer band nor 'auto'", param, ctx)
+        if not 0 <= v <= 200:
+            self.fail(f"{v} is not in the range 0<=x<=200 (or 'auto')", param, ctx)
+        return v
+
+
 @click.command("run")
 @click.argument("path", type=click.Path(path_type=Path), required=False)
 @click.option("--config", "config", type=click.Path(path_type=Path), is_eager=True,
@@ -140,8 +160,10 @@ def _batch_echo(line: str) -> None:
 @click.option("--out", "out", type=click.Path(path_type=Path),
               help="Output directory (results.json, report.html; per capture and index.html "
                    "for a batch).  [required]")
-@click.option("--lmax", type=click.IntRange(0, 200), default=2, show_default=True,
-              help="Highest SH band of the recovered lighting.")
+@click.option("--lmax", type=LmaxType(), default="2", show_default=True,
+              help="Highest SH band of the recovered lighting, or 'auto': report up to the "
+                   "band the data determine (problems lighting and auto under an environment; "
+                   "docs/fitting.md, suggested_lmax).")
 @click.option("--device", default="cpu", show_default=True,
               help="torch device of the samples and the fit: auto (CUDA when present, else "
                    "CPU), cpu, cuda, cuda:N.")
@@ -201,7 +223,7 @@ def _batch_echo(line: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the run's summary as one JSON "
               "object (key numbers with errors, ill-conditioned bands, warnings, paths).")
 @click.pass_obj
-def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int, device: str,
+def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int | str, device: str,
             problem: str, brdf: str | None, rule: str, brdf_lmax: int, design: str, jobs: int,
             scheduler: str | None, cluster: str | None, cluster_config: Path | None,
             connect_timeout: float, allow_outside: bool, force: bool, progress: bool | None,
@@ -236,6 +258,9 @@ def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int, devic
                     f"'brdfcap import-diligent {path} CAPTURE_DIR'")
         fail(BrdfcapError("no capture.toml found at or under this directory" + hint, path),
               debug)
+    if lmax == "auto" and problem not in ("auto", "lighting"):
+        fail(BrdfcapError(f"--lmax auto: only problems lighting and auto choose the band from "
+                          f"the data; give --lmax N for --problem {problem}"), debug)
     single = len(captures) == 1 and captures[0] == path
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
                       brdf_lmax=brdf_lmax, design=design)

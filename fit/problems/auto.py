@@ -26,7 +26,7 @@ __all__ = ["problem_auto", "lambertian_lighting", "lambertian_albedo"]
 
 def lambertian_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
     """Lambertian SH lighting to ``opts.lmax`` (albedo known, or fixed to 1 per channel)."""
-    k = (opts.lmax + 1) ** 2
+    k = 1 if opts.lmax == "auto" else (opts.lmax + 1) ** 2
     if len(samples) < k:
         raise FitError(f"{len(samples)} samples cannot determine {k} coefficients per channel "
                        f"(lmax = {opts.lmax}); lower --lmax or add views", known.source)

@@ -42,7 +42,7 @@ class FitOptions:
     approximate; ``docs/fitting.md``).
     """
 
-    lmax: int = 2
+    lmax: int | str = 2  # or "auto" (problems lighting and auto: the band the data determine)
     brdf: str | None = None
     rule: str = "gcv"
     brdf_lmax: int = 8

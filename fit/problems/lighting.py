@@ -49,8 +49,9 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
         return "none up to lmax" if l is None else f"l = {l}"
 
     how = "known" if given else "assumed: no [material]"
+    auto = " (--lmax auto: the band the data determine)" if opts.lmax == "auto" else ""
     summ = [f"Problem 1 (inverse lighting, {spec.model} BRDF {how}): lighting to l = "
-            f"{opts.lmax}; first ill-conditioned band {_band(fit.ill_conditioned_from_l)} "
+            f"{fit.lmax}{auto}; first ill-conditioned band {_band(fit.ill_conditioned_from_l)} "
             f"measured, {_band(p.get('first_ill_band'))} predicted by Ramamoorthi & Hanrahan "
             f"(2001) at the noise level ε = {fit.noise_level:.3g}.",
             f"Forward model of the specular part: {fit.design['text']}."]

@@ -99,6 +99,33 @@ def test_problem_brdf_directional_phong(captures, tmp_path):
         assert float(row["stderr"]) == pytest.approx(want, rel=1e-12) and want > 0
 
 
+def test_lmax_auto_reports_the_band_the_data_determine(captures, tmp_path):
+    """``--lmax auto`` (issue 12: "brdfcap run suggests an lmax, or --lmax auto"): problem 1
+    reports up to its suggested band; a fixed --lmax that differs from it gets the suggestion
+    in the terminal and the report; other problems refuse 'auto' in one line.
+    """
+    r = _run(captures["env"], tmp_path / "a", "--problem", "lighting", "--lmax", "auto")
+    lt = r["lighting"]
+    assert lt["lmax"] == max(lt["suggested_lmax"], 0) and lt["suggested_lmax"] >= 2
+    assert all(b["determined"] or b.get("bounded") or not b.get("observable", True)
+               for b in lt["bands"])
+    res = CliRunner().invoke(main, ["run", str(captures["env"]), "--out", str(tmp_path / "f"),
+                                    "--problem", "lighting", "--lmax", "1"])
+    assert res.exit_code == 0, res.output
+    r1 = json.loads((tmp_path / "f" / "results.json").read_text())
+    assert r1["lighting"]["suggested_lmax"] == lt["suggested_lmax"]
+    assert f"suggested lmax: the images determine every observable band up to l = " \
+           f"{lt['suggested_lmax']}" in res.output
+    assert f"--lmax {lt['suggested_lmax']}" in (tmp_path / "f" / "report.html").read_text()
+    for args, msg in ((["--problem", "brdf", "--lmax", "auto"],
+                       "only problems lighting and auto choose the band from the data"),
+                      (["--lmax", "two"], "neither an integer band nor 'auto'")):
+        res = CliRunner().invoke(main, ["run", str(captures["env"]), "--out",
+                                        str(tmp_path / "x"), *args])
+        assert res.exit_code != 0 and not (tmp_path / "x" / "results.json").exists()
+        assert msg in res.output and "Traceback" not in res.output, res.output
+
+
 def test_problem_both_reports_ambiguities(captures, tmp_path):
     """Problem 3 through the CLI: ambiguities listed in results.json and in the report."""
     r = _run(captures["env"], tmp_path / "o", "--problem", "both", "--lmax", "3",

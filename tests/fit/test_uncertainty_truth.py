@@ -228,6 +228,11 @@ def test_suggest_lmax_and_auto():
             {"l": 5, "observable": False, "determined": False},
             {"l": 6, "observable": True, "determined": False}]
     assert suggest_lmax(rows) == 4
+    # a bounded band ("no power above X") neither stops the suggestion nor ends it
+    rows[4] = {"l": 4, "observable": True, "determined": False, "bounded": True}
+    assert suggest_lmax(rows) == 2
+    rows[6] = {"l": 6, "observable": True, "determined": True}
+    assert suggest_lmax(rows) == 6
     # normals all around (several views): bands up to the suggestion are determined
     fit, _, _ = _single_view_distant_light("auto", torch.Generator().manual_seed(7), n=4000,
                                            hemisphere=False)
