@@ -384,13 +384,9 @@ def band_prior_weakening(sol: LinearSolution, kappa: float = PRIOR_WEAKENING,
         sel = sol.band == l
         gam = resolved[sel].sum(0)  # (C,)
         g = gam.clamp_min(1e-300)
-        shat = mu2[sel].sum(0) / g
-        err = z * (2.0 / g).sqrt()
-        # the band's data agree with the power law (|ln ŝ| within its error bar): else the
-        # prior is misspecified there, or a shrunk estimate cannot measure the band's power
-        agree = (gam >= MEASURED_BAND_GAMMA) & (shat.clamp_min(1e-300).log().abs() <= err)
-        k = torch.where(agree, (shat * torch.exp(err)).clamp(1.0, float(kappa)),
-                        torch.full_like(shat, float(kappa)))
+        up = mu2[sel].sum(0) / g * torch.exp(z * (2.0 / g).sqrt())
+        k = torch.where(gam >= MEASURED_BAND_GAMMA, up.clamp(1.0, float(kappa)),
+                        torch.full_like(up, float(kappa)))
         out[sel] = torch.nan_to_num(k, nan=float(kappa))[None, :]
     return out
 
