@@ -887,6 +887,11 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             tau = new
             if done:
                 break
+        if int(full.band.max()) != lint:
+            # L was raised and the term is negligible there: solve at the raised band with the
+            # noise model alone (the old band's solution lacks what made the raise; it was
+            # kept and reported as L before)
+            full = solve_weighted(w, lint, src)
         ratio = (tau[None, :] * t * w / scl[None, :]).amax(-1)
         share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
         if w_t is not w:
@@ -972,7 +977,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                  "log_evidence": bx.log_evidence.tolist(),
                  "form": "Var(L_lm) = scale * (l+1)^-slope",
                  "robustness_weakening": [[float(v) for v in kappa[full.band == l].max(0).values]
-                                          for l in range(lint + 1)],
+                                          for l in range(int(full.band.max()) + 1)],
                  "hidden_source": {"intensity": hid.tolist(), "direction": hid_dir.tolist(),
                                    "text": "brightest point source (band-limited to "
                                            f"{min(lint, HIDDEN_SOURCE_LMAX)}) the samples would "
