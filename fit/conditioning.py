@@ -31,15 +31,17 @@ from __future__ import annotations
 import math
 
 import torch
-from scipy.special import gammaincinv
+from scipy.special import gammaincinv, ndtri
 
 from .filters import lambertian_filter
+from .sh import real_sh
 from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "BAYES_DEFINITION", "PRECISION_LIMIT", "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
            "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
-           "weak_prior_variance", "ZERO_BAND_LIMIT", "band_data_only_covariance",
+           "weak_prior_variance", "band_prior_weakening", "MEASURED_BAND_GAMMA",
+           "hidden_source", "HIDDEN_SOURCE_LMAX", "ZERO_BAND_LIMIT", "band_data_only_covariance",
            "zero_band_bound", "band_statistics_bayes", "model_adequacy", "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
@@ -281,8 +283,8 @@ PRIOR_WEAKENING = 10.0
 PRIOR_DOMINATED_RATIO = 2.0
 
 
-def _precision_less_prior(cov: torch.Tensor, prior_variance: torch.Tensor, fraction: float
-                          ) -> tuple[torch.Tensor, torch.Tensor]:
+def _precision_less_prior(cov: torch.Tensor, prior_variance: torch.Tensor,
+                          fraction: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(P, d)``: the precision ``cov⁻¹`` less ``fraction`` of the prior precision, scaled.
 
     ``cov`` is scaled to unit diagonal first (``d = diag^{-1/2}``; well scaled for the
@@ -348,7 +350,49 @@ def zero_band_bound(sol: LinearSolution, sel: torch.Tensor, inflation: torch.Ten
     return upper, consistent
 
 
-def weak_prior_variance(sol: LinearSolution, kappa: float = PRIOR_WEAKENING) -> torch.Tensor:
+#: A band's power counts as measured by the data (:func:`band_prior_weakening`) from this many
+#: well-determined coefficients ``γ_l`` on: below, its scale is the power law's extrapolation.
+MEASURED_BAND_GAMMA = 0.5
+
+
+def band_prior_weakening(sol: LinearSolution, kappa: float = PRIOR_WEAKENING,
+                         level: float = ERROR_BOUND_LEVEL) -> torch.Tensor:
+    r"""Per coefficient ``(K, C)``: how much weaker the prior of rule 4 is, at most ``kappa``.
+
+    Rule 4 asks whether a band's bound survives a prior the data cannot exclude. Where the data
+    measure a band's power, a ``kappa``-times weaker prior there is a spectrum they rule out:
+    per band ``l`` of the (internal) solution, ``γ_l = Σ_m (1 − post_lm/prior_lm)`` is the
+    number of coefficients the data determine and ``ŝ_l = Σ_m μ_lm²/prior_lm / γ_l`` the
+    band's own re-estimate of the prior scale relative to the fitted power law (MacKay 1992,
+    "Bayesian interpolation", §4: the number of well-determined parameters ``γ``, the
+    re-estimate ``α = γ / Σ w²`` and its error bar ``σ(ln α) ≈ sqrt(2/γ)``). The weakening is
+    the ``level`` upper limit of that scale, ``ŝ_l exp(z_level sqrt(2/γ_l))``, clamped to
+    ``[1, kappa]``; ``kappa`` where ``γ_l <`` :data:`MEASURED_BAND_GAMMA` (a band the data
+    do not measure: its scale is the power law's extrapolation). One view of a glossy sphere
+    (812 samples, internal band 27): bands 9–27 alias into the reported ones and their power
+    is measured (γ_l = 19–40 of 2l+1, ŝ_l 0.5–1.3: the evidence's flat prior matches the
+    probe), so their weakening is 1–2.3, not 10 (``docs/fitting.md``, "One view of a glossy
+    sphere").
+    """
+    bx = sol.bayes
+    prior = bx.prior_variance.clamp_min(1e-300)
+    resolved = (1.0 - bx.posterior_variance / prior).clamp(0.0, 1.0)
+    mu2 = sol.coefficients ** 2 / prior
+    z = float(ndtri(level))
+    out = torch.full_like(prior, float(kappa))
+    for l in range(int(sol.band.max()) + 1):
+        sel = sol.band == l
+        gam = resolved[sel].sum(0)  # (C,)
+        g = gam.clamp_min(1e-300)
+        up = mu2[sel].sum(0) / g * torch.exp(z * (2.0 / g).sqrt())
+        k = torch.where(gam >= MEASURED_BAND_GAMMA, up.clamp(1.0, float(kappa)),
+                        torch.full_like(up, float(kappa)))
+        out[sel] = torch.nan_to_num(k, nan=float(kappa))[None, :]
+    return out
+
+
+def weak_prior_variance(sol: LinearSolution,
+                        kappa: float | torch.Tensor = PRIOR_WEAKENING) -> torch.Tensor:
     r"""Posterior variances ``(K, C)`` under the same model with a ``kappa``-times weaker prior.
 
     A band is determined by the *data* when its error bound holds whatever the prior's scale
@@ -362,16 +406,37 @@ def weak_prior_variance(sol: LinearSolution, kappa: float = PRIOR_WEAKENING) -> 
     P^{-1/2}``: when the solution carries its whitened eigen-basis
     (``BayesExtras.whitened_basis``) its diagonal is ``σ² Σ_j u_ij² / (g_j + λ/κ)``, O(K²)
     per channel; otherwise the covariance is inverted.
+
+    ``kappa`` may also be ``(K, C)``, one weakening per coefficient
+    (:func:`band_prior_weakening`): then ``σ² P^{-1/2} (U E Uᵀ + λ diag(1/κ))^{-1} P^{-1/2}``
+    from the whitened basis (one Cholesky factor per channel, K³/3), or the covariance
+    inverted as above.
     """
     bx = sol.bayes
-    if bx.whitened_basis is not None:
+    per = isinstance(kappa, torch.Tensor)
+    if per and bool((kappa == kappa.max()).all()):
+        kappa, per = float(kappa.max()), False
+    square = bx.whitened_basis is not None and bx.whitened_basis.shape[-1] == \
+        bx.whitened_basis.shape[-2]
+    if not per and bx.whitened_basis is not None:
         lam = (sol.lam / kappa)[:, None, None]
         return ((bx.whitened_basis ** 2 / (bx.whitened_eigenvalues[:, None, :] + lam)).sum(-1)
                 * bx.noise_scale[:, None]).T
     out = torch.empty_like(bx.posterior_variance)
     for c in range(sol.covariance.shape[0]):
+        kc = kappa[:, c].to(bx.prior_variance) if per else kappa
+        if per and square:
+            lam, s2 = float(sol.lam[c]), float(bx.noise_scale[c])
+            ps2 = bx.prior_variance[:, c] * lam / s2  # P^{-1}: the power law's shape
+            u = bx.whitened_basis[c] / ps2.sqrt()[:, None]  # P^{1/2} (P^{-1/2} U) = U
+            m = (u * bx.whitened_eigenvalues[c][None, :]) @ u.T + torch.diag(lam / kc)
+            ch = torch.linalg.cholesky(0.5 * (m + m.T))
+            li = torch.linalg.solve_triangular(ch, torch.eye(ch.shape[0], dtype=ch.dtype,
+                                                             device=ch.device), upper=False)
+            out[:, c] = s2 * ps2 * (li ** 2).sum(0)  # diag((L Lᵀ)⁻¹) = column norms of L⁻¹
+            continue
         weak, d = _precision_less_prior(sol.covariance[c], bx.prior_variance[:, c],
-                                        1.0 - 1.0 / kappa)
+                                        1.0 - 1.0 / kc)
         try:
             wc = torch.cholesky_inverse(torch.linalg.cholesky(weak))
         except torch.linalg.LinAlgError:
@@ -380,8 +445,76 @@ def weak_prior_variance(sol: LinearSolution, kappa: float = PRIOR_WEAKENING) -> 
     return out
 
 
+BAYES_DEFINITION += (
+    f" Two robustness rules: (4) the bound of (3) must also hold under a prior up to "
+    f"{PRIOR_WEAKENING:g}x weaker, as weak as the data allow: where the data measure a band's "
+    f"power (its well-determined coefficients gamma_l, MacKay 1992) the weakening is the "
+    f"{ERROR_BOUND_LEVEL:g} upper limit of that band's own re-estimated scale, else "
+    f"{PRIOR_WEAKENING:g}x; (5) the bound plus the change of the band's norm by a point source "
+    f"the samples would not detect (chi2 below its {ERROR_BOUND_LEVEL:g} quantile) at their "
+    f"least-seen direction must stay below {100 * ERROR_BOUND_LIMIT:g}% (one view: the "
+    f"lighting behind the object)."
+)
+
+#: Highest band of the point source of :func:`hidden_source` (K ≤ 625: the test costs
+#: ~1 GFLOP per channel whatever the internal band).
+HIDDEN_SOURCE_LMAX = 24
+
+
+def hidden_source(sol: LinearSolution, lmax_source: int = HIDDEN_SOURCE_LMAX,
+                  level: float = ERROR_BOUND_LEVEL) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""``(intensity (C,), direction (C, 3))``: the brightest point source the data would miss.
+
+    Within the model's own function space: a point source of intensity ``I`` at ``ω``
+    band-limited to ``L_s = min(L, lmax_source)`` (``L`` the solution's internal band) has SH
+    coefficients ``I Y_lm(ω)``, ``l ≤ L_s``; its signal in the data is ``I A y(ω)`` (``A`` the
+    design) of ``χ² = I² y(ω)ᵀ G y(ω) / σ²`` (``G`` the weighted Gram, ``σ²`` the noise
+    scale). The data detect it (χ² above the ``level`` quantile ``q`` of χ²₁) from
+    ``I_min(ω) = sqrt(q σ² / y(ω)ᵀ G y(ω))``; the least-seen direction of a Fibonacci grid of
+    ``4 (L_s+1)²`` directions gives the brightest such source no test on these samples can see.
+    It changes band ``l``'s norm by ``I sqrt((2l+1)/(4π))`` (the addition theorem,
+    ``Σ_m Y_lm(ω)² = (2l+1)/(4π)``) whatever the prior says: one view of a matte sphere faces
+    no normal to the light behind it (R&H 2001 eq. 8's clamped cosine), while one view of a
+    glossy sphere reflects nearly every direction into some pixel (``docs/fitting.md``, "One
+    view of a glossy sphere"). ``G`` comes from the whitened basis, ``P^{1/2} U E Uᵀ P^{1/2}``.
+    Sharper (unbounded-band) sources are not tested: within ``L`` the fit's model cannot
+    represent them, and the physical kernel of one view leaves a small cap behind the object
+    unseen for any BRDF (the image's outermost pixels), so such a test would withhold every
+    band of every single view.
+    """
+    bx = sol.bayes
+    nch = sol.coefficients.shape[1]
+    lint = int(sol.band.max())
+    ls = min(lint, int(lmax_source))
+    ks = (ls + 1) ** 2
+    m = 4 * ks
+    i = torch.arange(m, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / m
+    ph = math.pi * (1.0 + math.sqrt(5.0)) * i
+    rho = (1.0 - z * z).clamp_min(0.0).sqrt()
+    dirs = torch.stack([rho * torch.cos(ph), rho * torch.sin(ph), z], -1)
+    inten = torch.full((nch,), math.inf, dtype=torch.float64)
+    where = torch.zeros(nch, 3, dtype=torch.float64)
+    if bx.whitened_basis is None or bx.whitened_basis.shape[-2] < ks:
+        return inten, where
+    dirs = dirs.to(bx.whitened_basis.device)
+    y = real_sh(dirs, ls).to(torch.float64)
+    q = _chi2_quantile(level, 1)
+    for c in range(nch):
+        lam, s2 = float(sol.lam[c]), float(bx.noise_scale[c])
+        ps2 = (bx.prior_variance[:ks, c] * lam / s2).clamp_min(1e-300)
+        b = bx.whitened_basis[c][:ks] / ps2[:, None] \
+            * bx.whitened_eigenvalues[c].clamp_min(0.0).sqrt()[None, :]  # G_s = B Bᵀ
+        sens = ((y @ (b @ b.T)) * y).sum(-1).cpu()
+        j = int(torch.argmin(sens))
+        inten[c] = math.sqrt(q * s2 / max(float(sens[j]), 1e-300))
+        where[c] = dirs[j].cpu()
+    return inten, where
+
+
 def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
-                          eps: float | None = None, weak: torch.Tensor | None = None
+                          eps: float | None = None, weak: torch.Tensor | None = None,
+                          hidden: torch.Tensor | None = None
                           ) -> tuple[list[dict], int | None, torch.Tensor, torch.Tensor]:
     """Per-band rows of what the data resolve, for a solution of :func:`solve_bayes`.
 
@@ -398,6 +531,11 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
     weak : torch.Tensor, optional
         ``(K, C)`` posterior variances under a weaker prior (:func:`weak_prior_variance`):
         rule 4 (the bound must hold under it too) and the ``prior_dominated`` diagnosis.
+    hidden : torch.Tensor, optional
+        ``(C,)`` brightest point source the data would not detect (:func:`hidden_source`):
+        rule 5, a band whose error bound plus the change that source causes exceeds
+        :data:`ERROR_BOUND_LIMIT` of its norm is not determined (the samples do not see that
+        direction; ``prior_dominated``), and a bounded band's bound includes it.
 
     Returns
     -------
@@ -412,8 +550,10 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
         the larger of the fitted and the weaker prior's), ``error_bound_fitted_prior``,
         ``prior_sensitivity`` (worst channel: summed error variance under the
         :data:`PRIOR_WEAKENING`-times weaker prior over that under the fitted one; ``None``
-        without ``weak``), ``prior_dominated`` (``prior_sensitivity`` above
-        :data:`PRIOR_DOMINATED_RATIO`), ``determined``, ``bounded`` (a (nearly) empty band whose
+        without ``weak``), ``hidden_source_change`` (worst channel: the band-norm change of the
+        point source of ``hidden`` over the band's norm; ``None`` without it), ``prior_dominated``
+        (``prior_sensitivity`` above :data:`PRIOR_DOMINATED_RATIO`, or ``hidden_source_change``
+        above :data:`ERROR_BOUND_LIMIT`), ``determined``, ``bounded`` (a (nearly) empty band whose
         norm the data alone put below :data:`ZERO_BAND_LIMIT` of the lighting's norm:
         :func:`zero_band_bound`; not ill-conditioned), ``norm_upper_bound`` (per channel: the
         data-only bound on the band's norm) and ``norm_upper_bound_rel`` (that bound over the
@@ -468,12 +608,26 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
         if weak is not None:  # robust to a weaker prior (weak_prior_variance)
             bound = torch.maximum(bound, band_error_bound(weak[sel] * infl[l], norm))
             sens = float((weak[sel].sum(0) / post[sel].sum(0).clamp_min(1e-300)).max())
-        prior_dominated = sens is not None and sens > PRIOR_DOMINATED_RATIO
-        det = resolved & (bound <= ERROR_BOUND_LIMIT) & observable
+        unseen = torch.zeros(nch, dtype=torch.bool)
+        hid = hid_abs = None
+        if hidden is not None:  # rule 5: a source no sample sees (hidden_source)
+            hid_abs = hidden.to(norm) * math.sqrt((2 * l + 1) / (4 * math.pi))
+            hid_c = torch.where(norm > 0, hid_abs / norm.clamp_min(1e-300),
+                                torch.full_like(norm, math.inf))
+            # what the source could add counts against the same 10% as the bound: alone, or
+            # on top of a bound that passes
+            unseen = (hid_c > ERROR_BOUND_LIMIT) | ((bound <= ERROR_BOUND_LIMIT)
+                                                   & (bound + hid_c > ERROR_BOUND_LIMIT))
+            hid = float(hid_c.max())
+        prior_dominated = (sens is not None and sens > PRIOR_DOMINATED_RATIO) or \
+            (observable and bool(unseen.any()))
+        det = resolved & (bound <= ERROR_BOUND_LIMIT) & ~unseen & observable
         band_det[l] = det
         bounded, upper, upper_abs = False, None, None
         if observable and not bool(det.all()) and sol.covariance is not None:
             up, zero_ok = zero_band_bound(sol, sel, infl[l])
+            if hid_abs is not None:  # what an unseen source could add to the band's norm
+                up = up + hid_abs.to(up)
             upper = float((up / scale.clamp_min(1e-300)).max())
             bounded = bool(zero_ok.all()) and upper <= ZERO_BAND_LIMIT
             upper_abs = up.tolist()
@@ -492,13 +646,20 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             reasons.append(f"imprecise: band norm error up to {100 * float(bound.max()):.3g}% "
                            f"at probability {ERROR_BOUND_LEVEL:g} (> "
                            f"{100 * ERROR_BOUND_LIMIT:g}%)")
-            if prior_dominated:
+            if sens is not None and sens > PRIOR_DOMINATED_RATIO:
                 reasons.append(
-                    f"prior-dominated: its error variance grows {sens:.2g}x under a "
-                    f"{PRIOR_WEAKENING:g}x weaker prior (up to "
+                    f"prior-dominated: its error variance grows {sens:.2g}x under a prior up "
+                    f"to {PRIOR_WEAKENING:g}x weaker (as weak as the data allow) (up to "
                     f"{100 * float(bound_fitted.max()):.3g}% under the fitted one), so the "
                     f"samples do not see part of what sets this band (one view: the lighting "
                     f"behind the object); more views, not less noise, would determine it")
+        if observable and not bounded and bool(unseen.any()):
+            reasons.append(
+                f"prior-dominated: a point source the samples would not detect (chi2 below "
+                f"its {ERROR_BOUND_LEVEL:g} quantile) at the least-seen direction changes "
+                f"this band's norm by up to {100 * hid:.3g}% (with the error bound, more than "
+                f"{100 * ERROR_BOUND_LIMIT:g}%), so its value there is the prior's (one view: "
+                f"behind the object); more views, not less noise, would determine it")
         if not bool(repro_ok.all()):
             reasons.append(f"halves differ by chi2 {z2:.3g} > {lim:.3g} ({nl} dof): errors "
                            f"widened {math.sqrt(float(infl[l].max())):.3g}x")
@@ -514,7 +675,8 @@ def band_statistics_bayes(sol: LinearSolution, filt: torch.Tensor | None = None,
             "relative_precision": float(prec.max()),
             "error_bound": float(bound.max()),
             "error_bound_fitted_prior": float(bound_fitted.max()),
-            "prior_sensitivity": sens, "prior_dominated": prior_dominated,
+            "prior_sensitivity": sens, "hidden_source_change": hid,
+            "prior_dominated": prior_dominated,
             "reproducibility_chi2": z2, "reproducibility_limit": lim,
             "reproducible": bool(repro_ok.all()),
             "widened_by": math.sqrt(float(infl[l].max())),

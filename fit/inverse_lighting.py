@@ -25,9 +25,12 @@ from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
 from .conditioning import (
     BAYES_DEFINITION,
     ERROR_BOUND_LIMIT,
+    HIDDEN_SOURCE_LMAX,
     ZERO_BAND_LIMIT,
+    band_prior_weakening,
     band_statistics,
     band_statistics_bayes,
+    hidden_source,
     model_adequacy,
     noise_level,
     predicted_lstar,
@@ -884,6 +887,11 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             tau = new
             if done:
                 break
+        if int(full.band.max()) != lint:
+            # L was raised and the term is negligible there: solve at the raised band with the
+            # noise model alone (the old band's solution lacks what made the raise; it was
+            # kept and reported as L before)
+            full = solve_weighted(w, lint, src)
         ratio = (tau[None, :] * t * w / scl[None, :]).amax(-1)
         share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
         if w_t is not w:
@@ -900,14 +908,20 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     filt = _band_filter(spec, lint, design)
     eps = noise_level(full)
     prediction = _prediction(spec, eps)
-    weak = weak_prior_variance(full)
-    rows_all = band_statistics_bayes(full, filt, eps, weak)[0]
+    # rule 4 weakens the prior only as far as the data allow (band_prior_weakening); rule 5:
+    # the brightest point source no sample would see (docs/fitting.md, "One view of a glossy
+    # sphere")
+    kappa = band_prior_weakening(full)
+    weak = weak_prior_variance(full, kappa)
+    hid, hid_dir = hidden_source(full)
+    rows_all = band_statistics_bayes(full, filt, eps, weak, hid)[0]
     suggested = suggest_lmax(rows_all)
     if auto:
         lrep = max(suggested, 0)
     k = (lrep + 1) ** 2
     sol = restrict(full, k)
-    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k])
+    rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k],
+                                                      hid)
     if first is not None and first[0] is full:  # same solution, same data and weights
         adequacy = first[1]
     else:
@@ -961,7 +975,14 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     fit.prior = {"slope": bx.slope.tolist(), "scale": bx.prior_scale.tolist(),
                  "noise_scale": bx.noise_scale.tolist(),
                  "log_evidence": bx.log_evidence.tolist(),
-                 "form": "Var(L_lm) = scale * (l+1)^-slope"}
+                 "form": "Var(L_lm) = scale * (l+1)^-slope",
+                 "robustness_weakening": [[float(v) for v in kappa[full.band == l].max(0).values]
+                                          for l in range(int(full.band.max()) + 1)],
+                 "hidden_source": {"intensity": hid.tolist(), "direction": hid_dir.tolist(),
+                                   "text": "brightest point source (band-limited to "
+                                           f"{min(lint, HIDDEN_SOURCE_LMAX)}) the samples would "
+                                           "not detect (chi2 below its 0.99 quantile), at their "
+                                           "least-seen direction"}}
     fit.adequacy = adequacy
     fit.suggested_lmax = suggested
     return fit

@@ -84,8 +84,11 @@ def test_lighting_interval_coverage(case):
     reported in the assertion, and the 95% intervals still cover 90-98%.
     """
     if case == "lambertian-hemisphere":
-        cov, tot, lam = _lighting_coverage(BRDFSpec("lambertian", kd=[0.8, 0.6, 0.5]), 2, 40, 1,
-                                      hemisphere=True)
+        # a hemisphere of normals leaves the light behind it unseen: rule 5 (conditioning.
+        # hidden_source) withholds bands 1-2 in most captures (a source there moves them by
+        # 11-20%), so 100 captures (not 40) give >= 1000 determined coefficients
+        cov, tot, lam = _lighting_coverage(BRDFSpec("lambertian", kd=[0.8, 0.6, 0.5]), 2, 100, 1,
+                                           hemisphere=True)
     else:
         spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=8.0)
         cov, tot, lam = _lighting_coverage(spec, 4, 40, 2, known_noise=False,
