@@ -52,13 +52,13 @@ from .exact_design import (
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
-from .solve import apply_design, noise_weights, restrict, solve_bayes, solve_wls
+from .solve import RATIO_LIMIT, apply_design, noise_weights, restrict, solve_bayes, solve_wls
 
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
            "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
            "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
            "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
-           "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP"]
+           "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "resolved_tail_power"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -523,6 +523,35 @@ def truncation_power(design, scale: torch.Tensor | None, power: torch.Tensor,
     return out.clamp_min(0.0)
 
 
+def resolved_tail_power(sol) -> torch.Tensor:
+    r"""``(C,)`` power per SH coefficient of the last band the data resolve: the flat tail's level.
+
+    The bands ``1 … l_r`` whose every coefficient the data resolve (posterior variance ≤
+    :data:`~brdfcap.fit.solve.RATIO_LIMIT` × prior variance, rule 2 of
+    ``conditioning.band_statistics_bayes``), contiguous from band 1; the returned level is
+    ``mean_m x̂_{l_r m}²`` of the posterior mean, per channel (0 where no band ``≥ 1`` is
+    resolved). Used as the lighting's power per coefficient above the internal band when
+    deciding how far to solve (:func:`fit_lighting`, ``docs/fitting.md``, "Truncation noise"):
+    a texel probe's spectrum is flat above a few bands (Grace: 0.08–0.2 for l = 4–40), and the
+    residual cannot measure that power where the solved bands absorb it — the fitted
+    power-law prior then falls 2–3 decades below it (slope 3–4, one view of a rough lobe).
+    """
+    bx = sol.bayes
+    band = sol.band
+    ratio = bx.posterior_variance / bx.prior_variance.clamp_min(1e-300)  # (K, C)
+    x = sol.coefficients
+    out = torch.zeros(x.shape[1], dtype=torch.float64)
+    for c in range(x.shape[1]):
+        last = 0
+        for l in range(1, int(band.max()) + 1):
+            if not bool((ratio[band == l, c] <= RATIO_LIMIT).all()):
+                break
+            last = l
+        if last:
+            out[c] = float((x[band == last, c].to(torch.float64) ** 2).mean())
+    return out
+
+
 def _ml_scale(r2: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> float:
     """``x ≥ 0`` maximising ``Σ −½[log v + r²/v]``, ``v = a + x b`` (a 1-D grid, then refined)."""
     keep = b > 0
@@ -859,9 +888,19 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
 
         t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
         tau, scl = truncation_scale(residual(), var0, t, noise_known)
+        # how far to solve: the lighting above L at least as strong as the last band the data
+        # resolve (a flat tail). The residual cannot show what the solved bands absorbed: one
+        # view of Beckmann σ = 0.4 under Grace, L = 10: white residual, τ² by ML 0, while the
+        # true lighting above L passed by the kernels is 2 noise s.d. RMS and biased bands 0-2
+        # by up to 2.5 s.d. (docs/fitting.md, "Truncation the residual cannot show")
         ratio = (tau[None, :] * t * w / scl[None, :]).amax(-1)
         share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
-        if lint < lcap and share > TRUNCATION_REL:
+        if share <= TRUNCATION_REL:  # the residual shows none: the flat tail's prediction
+            tau_l = torch.maximum(tau, resolved_tail_power(full).to(tau))
+            ratio = (tau_l[None, :] * t * w / scl[None, :]).amax(-1)
+            share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
+        raised = lint < lcap and share > TRUNCATION_REL
+        if raised:
             # one step up, predicted from the lobe's normal-exitance tail (R&H's addition
             # theorem), aimed 10x below the limit: oblique lobes decay slower, and τ² grows
             # with L as the rim (cut lobes, heavy-tailed) comes to dominate it
