@@ -49,7 +49,14 @@ from .exact_design import (
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
-from .solve import apply_design, noise_weights, restrict, solve_bayes, solve_wls
+from .solve import (
+    ROW_BLOCK_ENTRIES,
+    apply_design,
+    noise_weights,
+    restrict,
+    solve_bayes,
+    solve_wls,
+)
 
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
            "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
@@ -508,6 +515,10 @@ def truncation_power(design, scale: torch.Tensor | None, power: torch.Tensor,
     """
     n = power.shape[0]
     out = torch.empty_like(power)
+    # blocks of rows as solve_bayes asks for them (ROW_BLOCK_ENTRIES: no fresh mapping)
+    width = int(design.live.numel()) * (1 if scale is not None else power.shape[1]) \
+        if hasattr(design, "live") else 1
+    chunk = max(256, min(chunk, ROW_BLOCK_ENTRIES // width))
     for s in range(0, n, chunk):
         e = min(s + chunk, n)
         a = design(s, e).to(torch.float64)
@@ -778,12 +789,14 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         n, b, w, split = n[perm], b[perm], w[perm], split[perm.to(split.device)]
         r = None if r is None else r[perm]
     b_scan = b if inv is None else b[inv]
-    # SH rows or the design evaluated once per solve and sliced, in tables up to
-    # SH_TABLE_MEMORY of the free memory: a design shared by the channels is kept itself (its
-    # live columns, LiveRows), else the SH rows of normals and reflected directions are
+    # a design shared by the channels (LiveRows) is not kept: solve_bayes asks for it in
+    # blocks below glibc's mmap threshold, twice per solve, cheaper than first-touching a
+    # fresh N x K table (docs/performance.md); otherwise the SH rows of normals and reflected
+    # directions are kept, in tables up to SH_TABLE_MEMORY of the free memory
     limit = max(SH_TABLE_ENTRIES, int(SH_TABLE_MEMORY * available_bytes(n.device)) // 8)
     shared = _shared_design(spec)
     per_table = 0 if shared else limit // (1 + (r is not None))
+    keep = 0
     exact = design_used(spec, design) == "exact"
     cap = max(lrep, min(INTERNAL_LMAX_CAP, _sample_cap(nsamp, spec, design)))
     # the exact rows are integrated once, at the largest bandwidth the fit may try (the cap;
@@ -800,7 +813,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
 
     def solve_to(cands):
         band = band_of_index(cands[-1]).to(n.device)
-        design_f, cscale = lighting_design(spec, n, r, cands[-1], tables, limit, design)
+        design_f, cscale = lighting_design(spec, n, r, cands[-1], tables, keep, design)
         return in_scan_order(solve_bayes(design_f, b, w, band, noise_known=noise_known,
                                          noise_source=src, chunk=chunk, channel_scale=cscale,
                                          split=split, bandwidths=cands)), cscale
@@ -809,7 +822,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         return x if inv is None else x[inv]
 
     def solve_weighted(w_, lint_, src_):
-        d_, cs_ = lighting_design(spec, n, r, lint_, tables, limit, design)
+        d_, cs_ = lighting_design(spec, n, r, lint_, tables, keep, design)
         return in_scan_order(solve_bayes(d_, b, w_, band_of_index(lint_).to(n.device),
                                          noise_known=noise_known, noise_source=src_,
                                          chunk=chunk, channel_scale=cs_, split=split,
@@ -830,7 +843,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     lint = int(full.band.max())
     cands = [lint]
     band = band_of_index(lint).to(n.device)
-    design_f, _ = lighting_design(spec, n, r, lint, tables, limit, design)
+    design_f, _ = lighting_design(spec, n, r, lint, tables, keep, design)
     if noise_model is not None and getattr(noise_model, "is_known", False):
         pred = b_scan - full.bayes.residual
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
@@ -868,7 +881,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             lint = lint + 1 + (int(ok[0]) if ok.numel() else lcap - lint - 1)
             cands = [lint]
             band = band_of_index(lint).to(n.device)
-            design_f, _ = lighting_design(spec, n, r, lint, tables, limit, design)
+            design_f, _ = lighting_design(spec, n, r, lint, tables, keep, design)
             t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
         w_t = w
         for it in range(TRUNCATION_ITERATIONS):
