@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import torch
@@ -51,7 +52,7 @@ from brdfcap.core.errors import FitError
 
 from .memory import check_wls_memory
 
-__all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restrict",
+__all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restrict", "block_rows",
            "SLOPE_GRID", "SLOPE_PRIOR", "EVIDENCE_GRID", "RATIO_LIMIT", "noise_weights",
            "drop_nonfinite_directions",
            "default_band_penalty",
@@ -440,8 +441,22 @@ GRAM_WORK_ROWS = 4096
 #: 3.8 ns per float64 written into a fresh 32 MiB block, 1.2–1.5 ns into a reused one or a
 #: block of ≤ 16 MiB), and blocks that stay in cache are copied and multiplied fastest (a
 #: 309k-sample Phong ``rh`` fit: 4.4 s CPU at 2^17–2^19 entries, 5.2 at 2^20, 5.7 at 2^21).
-#: A callable design of at most this many entries in all is evaluated once and kept.
+#: Per thread (:func:`block_rows`). A callable design of one block is evaluated once and kept.
 ROW_BLOCK_ENTRIES = 2 ** 19
+
+
+
+def block_rows(width: int, chunk: int) -> int:
+    """Rows per block of a design ``width`` entries wide: :data:`ROW_BLOCK_ENTRIES` per thread.
+
+    At most ``chunk``, at least 256. Every operation on a block is one parallel region; with
+    two threads on a machine whose other jobs hold the second core each region waits for it
+    (measured at load 3–5: copying the live columns of 309k rows at L = 20 took 0.09 s CPU on
+    one thread, 1.6 s on two in blocks of 1,188 rows, 0.5 s in blocks of 4,752), so the
+    blocks grow with the thread count.
+    """
+    per = ROW_BLOCK_ENTRIES * max(1, torch.get_num_threads())
+    return max(256, min(chunk, per // max(width, 1)))
 
 
 class _GramSum:
@@ -626,6 +641,27 @@ def _live_columns(g: torch.Tensor) -> torch.Tensor:
     return (g != 0).any(-1)
 
 
+@contextmanager
+def _lapack_one_thread():
+    """Run the dense factorisations of one (K ≤ ~1000) matrix on one thread, then restore.
+
+    Measured on the shared 2-core VM (load 4): ``eigh`` of 234² costs 2.7 ms CPU on one thread
+    and 4–8 ms on two, 625² 32 against 54–78 ms, 1024² 150 against 165 ms, and inside the
+    309k-sample Lambertian fit at two threads its 26 ``eigh`` took 7.3 s CPU (0.03 s on one):
+    LAPACK's many small parallel regions wait for a second core the other jobs hold. The
+    thread count is per process; nothing else runs while it is lowered.
+    """
+    threads = torch.get_num_threads()
+    if threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def _eigh_live(g: torch.Tensor, sc: torch.Tensor, live: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Eigen-decomposition ``(ev, u)`` of a symmetric PSD ``g`` (scaled by ``sc`` for eigh).
@@ -637,10 +673,11 @@ def _eigh_live(g: torch.Tensor, sc: torch.Tensor, live: torch.Tensor
     idx = torch.nonzero(live).flatten()
     nl = int(idx.numel())
     gl = g if nl == kc else g[idx[:, None], idx[None, :]]
-    try:
-        ev, u = torch.linalg.eigh(gl / sc)
-    except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
-        u, ev, _ = torch.linalg.svd(gl / sc)  # symmetric PSD: the same factorisation
+    with _lapack_one_thread():
+        try:
+            ev, u = torch.linalg.eigh(gl / sc)
+        except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
+            u, ev, _ = torch.linalg.svd(gl / sc)  # symmetric PSD: the same factorisation
     ev = ev.clamp_min(0.0) * sc
     if nl == kc:
         return ev, u
@@ -662,7 +699,8 @@ def _shifted_inverse(m: torch.Tensor, lam: float, live: torch.Tensor) -> torch.T
     else:
         ml = m[idx[:, None], idx[None, :]]
     ml.diagonal().add_(lam)
-    inv_l = torch.cholesky_inverse(torch.linalg.cholesky(ml))
+    with _lapack_one_thread():
+        inv_l = torch.cholesky_inverse(torch.linalg.cholesky(ml))
     if int(idx.numel()) == kc:
         return inv_l
     out = torch.diag(torch.full((kc,), 1.0 / lam, dtype=m.dtype, device=m.device))
@@ -743,8 +781,8 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
         # any other callable may be (n, C, K)): evaluated again on each of the two passes
         # rather than kept in a fresh table, whose first touch costs as much
         width = k if full_live_rows is not None else k * nch
-        chunk = max(256, min(chunk, ROW_BLOCK_ENTRIES // max(width, 1)))
-        if n * width <= ROW_BLOCK_ENTRIES:
+        chunk = block_rows(width, chunk)
+        if n <= chunk:
             design = design(0, n)
     sp = None if split is None else split.to(dev).long()
     gram, rhs, halves, shared_gram = _accumulate(design, b, w, cs, chunk, sp, live)
