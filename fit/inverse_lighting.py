@@ -516,7 +516,7 @@ def truncation_power(design, scale: torch.Tensor | None, power: torch.Tensor,
     """
     n = power.shape[0]
     out = torch.empty_like(power)
-    # blocks of rows as solve_bayes asks for them (block_rows: no fresh mapping per block)
+    # blocks of rows as solve_bayes asks for them (block_rows: cache-sized)
     if hasattr(design, "live"):
         chunk = block_rows(int(design.live.numel()) * (1 if scale is not None
                                                        else power.shape[1]), chunk)
@@ -791,8 +791,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         r = None if r is None else r[perm]
     b_scan = b if inv is None else b[inv]
     # a design shared by the channels (LiveRows) is not kept: solve_bayes asks for it in
-    # blocks below glibc's mmap threshold, twice per solve, cheaper than first-touching a
-    # fresh N x K table (docs/performance.md); otherwise the SH rows of normals and reflected
+    # cache-sized blocks, twice per solve, cheaper than first-touching a fresh N x K table
+    # (fit.solve.ROW_BLOCK_ENTRIES); otherwise the SH rows of normals and reflected
     # directions are kept, in tables up to SH_TABLE_MEMORY of the free memory
     limit = max(SH_TABLE_ENTRIES, int(SH_TABLE_MEMORY * available_bytes(n.device)) // 8)
     shared = _shared_design(spec)

@@ -435,15 +435,15 @@ PANEL_GRAM_COLUMNS = 512
 #: Rows of the design weighted at a time (:class:`_GramSum`; one reused buffer of
 #: ``GRAM_WORK_ROWS × K``: 20 MB at K = 625, below glibc's 32 MiB mmap threshold).
 GRAM_WORK_ROWS = 4096
-#: Entries (float64) of one block of design rows that :func:`solve_bayes` asks a callable design
-#: for (4 MiB, counting every column of the full rows): a block above glibc's 32 MiB mmap
-#: threshold is mapped afresh and page-faulted on every pass (measured on the shared 2-core VM:
-#: 3.8 ns per float64 written into a fresh 32 MiB block, 1.2–1.5 ns into a reused one or a
-#: block of ≤ 16 MiB), and blocks that stay in cache are copied and multiplied fastest (a
-#: 309k-sample Phong ``rh`` fit: 4.4 s CPU at 2^17–2^19 entries, 5.2 at 2^20, 5.7 at 2^21).
-#: Per thread (:func:`block_rows`). A callable design of one block is evaluated once and kept.
+#: Entries (float64) of one block of design rows, per thread (:func:`block_rows`; 4 MiB, counting
+#: every column of the full rows): blocks that stay in cache are made, copied and multiplied
+#: fastest (309k-sample Phong ``rh`` fit, one thread: 4.4 s CPU at 2^17–2^19 entries, 5.2 at
+#: 2^20, 5.7 at 2^21). A callable design is evaluated again on each of a solve's two passes,
+#: not kept in an ``N × K`` table: such a table (0.6–1.5 GB at 309k samples) is above the 256
+#: MiB mmap threshold ``import brdfcap`` sets, so each solve maps and first-touches it afresh
+#: (1.6 s of the 2.1 s Lambertian lmax-8 fit, 1.5–4.7 s of the Phong one on the shared VM,
+#: against 0.3 and 1.3 s for evaluating the rows twice). A design of one block is kept.
 ROW_BLOCK_ENTRIES = 2 ** 19
-
 
 
 def block_rows(width: int, chunk: int) -> int:
@@ -468,9 +468,9 @@ class _GramSum:
     one matrix product over the live columns into the running sum — or, from
     :data:`PANEL_GRAM_COLUMNS` columns up, two column panels of its lower triangle (thinner
     blocks run below the BLAS's peak) — and :meth:`total` mirrors the lower triangle once, so
-    the Gram is exactly symmetric. The weighted rows go into one reused ``work`` buffer
-    ``(r, ≥ K_live)`` taken ``r`` rows at a time (a fresh ``n × K`` temporary above glibc's
-    mmap threshold, 32 MiB, is mapped and page-faulted on every block).
+    the Gram is exactly symmetric, and each channel's factor is applied once, to the total.
+    The weighted rows go into one reused ``work`` buffer ``(r, ≥ K_live)``, ``r`` rows at a
+    time.
     """
 
     def __init__(self, k: int, live: torch.Tensor | None, work: torch.Tensor,
@@ -777,9 +777,8 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
                 cols = None
     kp = k if cols is None else int(cols.numel())
     if callable(design):
-        # rows asked for in blocks of at most ROW_BLOCK_ENTRIES (a LiveRows design is 2-D,
-        # any other callable may be (n, C, K)): evaluated again on each of the two passes
-        # rather than kept in a fresh table, whose first touch costs as much
+        # rows asked for in blocks (block_rows; a LiveRows design is 2-D, any other callable
+        # may be (n, C, K)), evaluated again on each of the two passes (ROW_BLOCK_ENTRIES)
         width = k if full_live_rows is not None else k * nch
         chunk = block_rows(width, chunk)
         if n <= chunk:
