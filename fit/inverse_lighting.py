@@ -62,7 +62,7 @@ __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance",
            "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
            "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
            "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
-           "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP"]
+           "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -97,6 +97,13 @@ SH_TABLE_ENTRIES = 2 ** 26
 #: tables of one fit may take together: 6 views of 256² (309k samples) at L = 24 need 1.5 GB
 #: per direction set; without the table its rows are evaluated again on every pass.
 SH_TABLE_MEMORY = 0.125
+#: Most entries (float64) of the kept table of a shared design's live columns (:class:`LiveRows`)
+#: in :func:`fit_lighting`: 128 MiB, under the 256 MiB mmap threshold ``import brdfcap`` sets, so
+#: the heap serves it again to the next solve and fit. A larger table (0.6–1.5 GB for 6 views
+#: of 256²) would be mapped and first-touched afresh by every solve — 1.6 s of a 2.1 s
+#: Lambertian fit and 1.5–4.7 s of a glossy one on the shared VM, 2.1 against 0.6 GB peak
+#: memory for the glossy one — so its rows are evaluated again on each pass instead.
+LIVE_TABLE_ENTRIES = 2 ** 24
 
 
 class SHRows:
@@ -790,14 +797,14 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         n, b, w, split = n[perm], b[perm], w[perm], split[perm.to(split.device)]
         r = None if r is None else r[perm]
     b_scan = b if inv is None else b[inv]
-    # a design shared by the channels (LiveRows) is not kept: solve_bayes asks for it in
-    # cache-sized blocks, twice per solve, cheaper than first-touching a fresh N x K table
-    # (fit.solve.ROW_BLOCK_ENTRIES); otherwise the SH rows of normals and reflected
-    # directions are kept, in tables up to SH_TABLE_MEMORY of the free memory
+    # a design shared by the channels (LiveRows) is kept only up to LIVE_TABLE_ENTRIES; a
+    # larger one is evaluated in cache-sized blocks on each pass (fit.solve.ROW_BLOCK_ENTRIES);
+    # otherwise the SH rows of normals and reflected directions are kept, in tables up to
+    # SH_TABLE_MEMORY of the free memory
     limit = max(SH_TABLE_ENTRIES, int(SH_TABLE_MEMORY * available_bytes(n.device)) // 8)
     shared = _shared_design(spec)
     per_table = 0 if shared else limit // (1 + (r is not None))
-    keep = 0
+    keep = LIVE_TABLE_ENTRIES
     exact = design_used(spec, design) == "exact"
     cap = max(lrep, min(INTERNAL_LMAX_CAP, _sample_cap(nsamp, spec, design)))
     # the exact rows are integrated once, at the largest bandwidth the fit may try (the cap;
