@@ -468,9 +468,8 @@ class _GramSum:
     one matrix product over the live columns into the running sum — or, from
     :data:`PANEL_GRAM_COLUMNS` columns up, two column panels of its lower triangle (thinner
     blocks run below the BLAS's peak) — and :meth:`total` mirrors the lower triangle once, so
-    the Gram is exactly symmetric, and each channel's factor is applied once, to the total.
-    The weighted rows go into one reused ``work`` buffer ``(r, ≥ K_live)``, ``r`` rows at a
-    time.
+    the Gram is exactly symmetric. The weighted rows go into one reused ``work`` buffer
+    ``(r, ≥ K_live)``, ``r`` rows at a time.
     """
 
     def __init__(self, k: int, live: torch.Tensor | None, work: torch.Tensor,
@@ -506,23 +505,6 @@ class _GramSum:
         g = gz.new_zeros(self.k, self.k)
         g[self.nz[:, None], self.nz[None, :]] = gz
         return g
-
-
-def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
-                   live: torch.Tensor | None = None,
-                   work: torch.Tensor | None = None) -> torch.Tensor:
-    """``aᵀ diag(w) a`` (K, K) of one float64 block ``a`` (n, K), weights ``wcol`` (n, 1).
-
-    ``live``: the columns that may be nonzero (found by scanning ``a`` when ``None``);
-    ``work``: a reused buffer (:class:`_GramSum`).
-    """
-    if live is None:
-        live = (a != 0).any(0)
-    if work is None:
-        work = a.new_empty((min(a.shape[0], GRAM_WORK_ROWS), a.shape[1]))
-    acc = _GramSum(a.shape[1], live, work, a)
-    acc.add(a, wcol)
-    return acc.total()
 
 
 #: Channels whose weights equal channel 0's times a constant to this relative tolerance share
