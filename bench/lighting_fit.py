@@ -10,7 +10,8 @@ and rendered by direct summation over the texels (not by the SH forward model th
 inverts), 1% Gaussian noise. Error: the largest relative band-norm error
 ``|L̂_l − L_l| / |L_l|`` over the bands the fit calls determined; truth = the SH projection of
 the same 64×32 probe. Wall time is the best of ``--repeat`` runs, CPU time (user + system of
-the process, all threads) of the same run (rows under 100k samples: best of at least 3).
+the process, all threads) of the same run (rows under 100k samples: best of at least 3);
+"load" is the 1-minute load average after the row (on a shared machine read the CPU column).
 Examples::
 
     python bench/lighting_fit.py                   # issue 12/18 target rows + cold start: ~2 min
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -152,8 +154,8 @@ def targets(args):
     img, d, lw = probe()
     truth = project_envmap(img, 16, quadrature="pixel")
     rows = ["| case | samples | lmax | internal L | wall (s) | CPU (s) | target (s) | met "
-            "| max band error (determined) | first ill band |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+            "| max band error (determined) | first ill band | load |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, views, size, model, lmax, goal in TARGETS:
         spec = LAMBERTIAN if model == "lambertian" else PHONG
         n, r, view, bn, var = capture(spec, views, size, d, lw)
@@ -165,7 +167,7 @@ def targets(args):
         err = band_error(f, truth[:(lmax + 1) ** 2], lmax)
         rows.append(f"| {name} | {n.shape[0]} | {lmax} | {f.internal_lmax} | {wall:.3g} | "
                     f"{cpu:.3g} | {goal:g} | {'yes' if wall <= goal else 'no'} | {err:.3g} | "
-                    f"{f.ill_conditioned_from_l} |")
+                    f"{f.ill_conditioned_from_l} | {os.getloadavg()[0]:.1f} |")
         print(rows[-1], flush=True)
     out = subprocess.run([sys.executable, __file__, "--cold-child", "--threads",
                           str(args.threads)], capture_output=True, text=True, check=True)

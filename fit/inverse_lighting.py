@@ -52,13 +52,22 @@ from .exact_design import (
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
 from .sh import band_of_index, real_sh
-from .solve import RATIO_LIMIT, apply_design, noise_weights, restrict, solve_bayes, solve_wls
+from .solve import (
+    RATIO_LIMIT,
+    apply_design,
+    block_rows,
+    noise_weights,
+    restrict,
+    solve_bayes,
+    solve_wls,
+)
 
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
            "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
            "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
            "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
-           "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "resolved_tail_power"]
+           "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES",
+           "resolved_tail_power"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -93,6 +102,13 @@ SH_TABLE_ENTRIES = 2 ** 26
 #: tables of one fit may take together: 6 views of 256² (309k samples) at L = 24 need 1.5 GB
 #: per direction set; without the table its rows are evaluated again on every pass.
 SH_TABLE_MEMORY = 0.125
+#: Most entries (float64) of the kept table of a shared design's live columns (:class:`LiveRows`)
+#: in :func:`fit_lighting`: 128 MiB, under the 256 MiB mmap threshold ``import brdfcap`` sets, so
+#: the heap serves it again to the next solve and fit. A larger table (0.6–1.5 GB for 6 views
+#: of 256²) would be mapped and first-touched afresh by every solve — 1.6 s of a 2.1 s
+#: Lambertian fit and 1.5–4.7 s of a glossy one on the shared VM, 2.1 against 0.6 GB peak
+#: memory for the glossy one — so its rows are evaluated again on each pass instead.
+LIVE_TABLE_ENTRIES = 2 ** 24
 
 
 class SHRows:
@@ -262,8 +278,8 @@ class LiveRows:
     A column whose filter is exactly 0 (odd Lambertian bands ``l ≥ 3``, R&H 2001 eq. 9) is
     exactly 0 in every row: :func:`brdfcap.fit.solve.solve_bayes` forms and multiplies only
     the others. With ``rows`` and ``filt`` (a design ``rows(s, e, lmax) * filt``) the live
-    columns, whole bands and so runs of adjacent columns, are copied run by run with the
-    filter applied (the same numbers, without forming the dead ones). When the
+    columns are gathered and the filter applied (the same numbers, without forming the dead
+    ones). When the
     ``N × K_live`` entries are at most ``keep``, the first call builds one table (in chunks)
     and every pass over the samples then slices it: the design is evaluated once per solve,
     not once per pass. The table is filled ``chunk`` rows at a time: 4096 rows of the full
@@ -286,6 +302,8 @@ class LiveRows:
                 self.runs.append((start, i))
                 start = None
         self.rows, self.lmax, self.filt = rows, lmax, filt
+        self.cols = torch.nonzero(live.cpu()).flatten()
+        self.filt_live = None if filt is None else filt[self.cols.to(filt.device)]
         self.table: torch.Tensor | None = None
 
     def _rows_into(self, out: torch.Tensor | None, s: int, e: int) -> torch.Tensor:
@@ -300,13 +318,12 @@ class LiveRows:
             return out
         if out is None:
             out = full.new_empty((e - s, self.width))
-        o = 0
-        for a, b in self.runs:
-            if self.rows is None:
-                out[:, o:o + b - a] = full[:, a:b]
-            else:
-                torch.mul(full[:, a:b], self.filt[a:b], out=out[:, o:o + b - a])
-            o += b - a
+        # one gather and one product per block, not one per run: each is a parallel region,
+        # and under load two threads pay ~0.5 ms per region (310k-sample Lambertian fit:
+        # 3.2 s CPU in ~7,000 run copies at two threads, 0.34 s at one)
+        torch.index_select(full, 1, self.cols.to(full.device), out=out)
+        if self.rows is not None:
+            out.mul_(self.filt_live.to(out))
         return out
 
     def __call__(self, s: int, e: int) -> torch.Tensor:
@@ -511,6 +528,10 @@ def truncation_power(design, scale: torch.Tensor | None, power: torch.Tensor,
     """
     n = power.shape[0]
     out = torch.empty_like(power)
+    # blocks of rows as solve_bayes asks for them (block_rows: cache-sized)
+    if hasattr(design, "live"):
+        chunk = block_rows(int(design.live.numel()) * (1 if scale is not None
+                                                       else power.shape[1]), chunk)
     for s in range(0, n, chunk):
         e = min(s + chunk, n)
         a = design(s, e).to(torch.float64)
@@ -810,12 +831,14 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         n, b, w, split = n[perm], b[perm], w[perm], split[perm.to(split.device)]
         r = None if r is None else r[perm]
     b_scan = b if inv is None else b[inv]
-    # SH rows or the design evaluated once per solve and sliced, in tables up to
-    # SH_TABLE_MEMORY of the free memory: a design shared by the channels is kept itself (its
-    # live columns, LiveRows), else the SH rows of normals and reflected directions are
+    # a design shared by the channels (LiveRows) is kept only up to LIVE_TABLE_ENTRIES; a
+    # larger one is evaluated in cache-sized blocks on each pass (fit.solve.ROW_BLOCK_ENTRIES);
+    # otherwise the SH rows of normals and reflected directions are kept, in tables up to
+    # SH_TABLE_MEMORY of the free memory
     limit = max(SH_TABLE_ENTRIES, int(SH_TABLE_MEMORY * available_bytes(n.device)) // 8)
     shared = _shared_design(spec)
     per_table = 0 if shared else limit // (1 + (r is not None))
+    keep = LIVE_TABLE_ENTRIES
     exact = design_used(spec, design) == "exact"
     cap = max(lrep, min(INTERNAL_LMAX_CAP, _sample_cap(nsamp, spec, design)))
     # the exact rows are integrated once, at the largest bandwidth the fit may try (the cap;
@@ -832,7 +855,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
 
     def solve_to(cands):
         band = band_of_index(cands[-1]).to(n.device)
-        design_f, cscale = lighting_design(spec, n, r, cands[-1], tables, limit, design)
+        design_f, cscale = lighting_design(spec, n, r, cands[-1], tables, keep, design)
         return in_scan_order(solve_bayes(design_f, b, w, band, noise_known=noise_known,
                                          noise_source=src, chunk=chunk, channel_scale=cscale,
                                          split=split, bandwidths=cands)), cscale
@@ -841,7 +864,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         return x if inv is None else x[inv]
 
     def solve_weighted(w_, lint_, src_):
-        d_, cs_ = lighting_design(spec, n, r, lint_, tables, limit, design)
+        d_, cs_ = lighting_design(spec, n, r, lint_, tables, keep, design)
         return in_scan_order(solve_bayes(d_, b, w_, band_of_index(lint_).to(n.device),
                                          noise_known=noise_known, noise_source=src_,
                                          chunk=chunk, channel_scale=cs_, split=split,
@@ -862,7 +885,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     lint = int(full.band.max())
     cands = [lint]
     band = band_of_index(lint).to(n.device)
-    design_f, _ = lighting_design(spec, n, r, lint, tables, limit, design)
+    design_f, _ = lighting_design(spec, n, r, lint, tables, keep, design)
     if noise_model is not None and getattr(noise_model, "is_known", False):
         pred = b_scan - full.bayes.residual
         var2 = torch.as_tensor(noise_model.variance(pred.cpu().numpy()),
@@ -910,7 +933,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             lint = lint + 1 + (int(ok[0]) if ok.numel() else lcap - lint - 1)
             cands = [lint]
             band = band_of_index(lint).to(n.device)
-            design_f, _ = lighting_design(spec, n, r, lint, tables, limit, design)
+            design_f, _ = lighting_design(spec, n, r, lint, tables, keep, design)
             t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
         w_t = w
         for it in range(TRUNCATION_ITERATIONS):

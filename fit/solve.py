@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import torch
@@ -51,7 +52,7 @@ from brdfcap.core.errors import FitError
 
 from .memory import check_wls_memory
 
-__all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restrict",
+__all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restrict", "block_rows",
            "SLOPE_GRID", "SLOPE_PRIOR", "EVIDENCE_GRID", "RATIO_LIMIT", "noise_weights",
            "drop_nonfinite_directions",
            "default_band_penalty",
@@ -427,62 +428,83 @@ class BayesExtras:
     whitened_eigenvalues: torch.Tensor | None = None
 
 
-#: From this many live columns up, :func:`_weighted_gram` forms the lower triangle in two
-#: column panels (3/4 of the products): 16% less CPU at 625 columns, 9% more at 328 (one
-#: thread, 32768 rows; below, one product runs nearer the BLAS's peak).
+#: From this many live columns up, the weighted Gram (:class:`_GramSum`) is formed as the lower
+#: triangle in two column panels (3/4 of the products): 16% less CPU at 625 columns, 9% more at
+#: 328 (one thread, 32768 rows; below, one product runs nearer the BLAS's peak).
 PANEL_GRAM_COLUMNS = 512
-#: Rows of the design weighted at a time in :func:`_weighted_gram` (one reused buffer of
+#: Rows of the design weighted at a time (:class:`_GramSum`; one reused buffer of
 #: ``GRAM_WORK_ROWS × K``: 20 MB at K = 625, below glibc's 32 MiB mmap threshold).
 GRAM_WORK_ROWS = 4096
+#: Entries (float64) of one block of design rows, per thread (:func:`block_rows`; 4 MiB, counting
+#: every column of the full rows): blocks that stay in cache are made, copied and multiplied
+#: fastest (309k-sample Phong ``rh`` fit, one thread: 4.4 s CPU at 2^17–2^19 entries, 5.2 at
+#: 2^20, 5.7 at 2^21). A callable design is evaluated again on each of a solve's two passes,
+#: not kept in an ``N × K`` table: such a table (0.6–1.5 GB at 309k samples) is above the 256
+#: MiB mmap threshold ``import brdfcap`` sets, so each solve maps and first-touches it afresh
+#: (1.6 s of the 2.1 s Lambertian lmax-8 fit, 1.5–4.7 s of the Phong one on the shared VM,
+#: against 0.3 and 1.3 s for evaluating the rows twice). A design of one block is kept.
+ROW_BLOCK_ENTRIES = 2 ** 19
 
 
-def _weighted_gram(a: torch.Tensor, wcol: torch.Tensor,
-                   live: torch.Tensor | None = None,
-                   work: torch.Tensor | None = None) -> torch.Tensor:
-    """``aᵀ diag(w) a`` (K, K) for a float64 block ``a`` (n, K) and weights ``wcol`` (n, 1).
+def block_rows(width: int, chunk: int) -> int:
+    """Rows per block of a design ``width`` entries wide: :data:`ROW_BLOCK_ENTRIES` per thread.
 
-    Columns that are identically zero in the block (e.g. the odd bands ``l ≥ 3`` of a
-    Lambertian design, where ``Â_l = 0``; R&H 2001 eq. 9) contribute exact zeros and are not
-    multiplied: ``live`` (K,) bool names the others when the caller knows them (a design's
-    ``live`` attribute, :func:`brdfcap.fit.inverse_lighting.lighting_design`), else they are
-    found by scanning the block. One matrix product over the live columns, or two column
-    panels of the lower triangle from :data:`PANEL_GRAM_COLUMNS` columns up (thinner blocks
-    run below the BLAS's peak); the lower triangle is mirrored so the Gram is exactly
-    symmetric. ``work``: a float64 buffer ``(r, ≥ K)`` for the weighted rows, reused across
-    chunks; the block is then taken ``r`` rows at a time, each product added into the Gram (a
-    fresh ``n × K`` temporary above glibc's mmap threshold, 32 MiB, is mapped and page-faulted
-    on every chunk; :data:`GRAM_WORK_ROWS` rows stay far below it).
+    At most ``chunk``, at least 256. Every operation on a block is one parallel region; with
+    two threads on a machine whose other jobs hold the second core each region waits for it
+    (measured at load 3–5: copying the live columns of 309k rows at L = 20 took 0.09 s CPU on
+    one thread, 1.6 s on two in blocks of 1,188 rows, 0.5 s in blocks of 4,752), so the
+    blocks grow with the thread count.
     """
-    k = a.shape[1]
-    if live is None:
-        live = (a[:64] != 0).any(0)  # most columns show a nonzero in their first rows
-        if not bool(live.all()):
-            maybe = torch.nonzero(~live).flatten()
-            live[maybe] = (a[:, maybe] != 0).any(0)
-    nz = torch.nonzero(live).flatten()
-    kz = int(nz.numel())
-    if kz == 0:
-        return torch.zeros(k, k, dtype=torch.float64, device=a.device)
-    az = a if kz == k else a[:, nz]
-    n = az.shape[0]
-    step = n if work is None or work.shape[1] < kz else work.shape[0]
-    gz = az.new_zeros(kz, kz)
-    h = kz // 2 if kz >= PANEL_GRAM_COLUMNS else kz  # two panels: 3/4 of the flops
-    for s in range(0, n, step):
-        blk = az[s:s + step]
-        if step == n:
-            aw = blk * wcol
-        else:
-            aw = torch.mul(blk, wcol[s:s + step], out=work[:blk.shape[0], :kz])
-        gz[:, :h].addmm_(aw.T, blk[:, :h])
-        if h < kz:
-            gz[h:, h:].addmm_(aw[:, h:].T, blk[:, h:])
-    gz = torch.tril(gz) + torch.tril(gz, -1).T
-    if kz == k:
-        return gz
-    g = torch.zeros(k, k, dtype=torch.float64, device=a.device)
-    g[nz[:, None], nz[None, :]] = gz
-    return g
+    per = ROW_BLOCK_ENTRIES * max(1, torch.get_num_threads())
+    return max(256, min(chunk, per // max(width, 1)))
+
+
+class _GramSum:
+    """Running ``Σ aᵀ diag(w) a`` over blocks of rows of a float64 design, ``(K, K)``.
+
+    Columns outside ``live`` (K,) bool are identically zero in every block (e.g. the odd
+    bands ``l ≥ 3`` of a Lambertian design, where ``Â_l = 0``; R&H 2001 eq. 9): they
+    contribute exact zeros and are not multiplied (``None``: all columns are). Each block adds
+    one matrix product over the live columns into the running sum — or, from
+    :data:`PANEL_GRAM_COLUMNS` columns up, two column panels of its lower triangle (thinner
+    blocks run below the BLAS's peak) — and :meth:`total` mirrors the lower triangle once, so
+    the Gram is exactly symmetric. The weighted rows go into one reused ``work`` buffer
+    ``(r, ≥ K_live)``, ``r`` rows at a time.
+    """
+
+    def __init__(self, k: int, live: torch.Tensor | None, work: torch.Tensor,
+                 like: torch.Tensor):
+        self.k = k
+        self.nz = None if live is None or bool(live.all()) else torch.nonzero(live).flatten()
+        self.kz = k if self.nz is None else int(self.nz.numel())
+        self.h = self.kz // 2 if self.kz >= PANEL_GRAM_COLUMNS else self.kz
+        self.work = work
+        self.g = like.new_zeros(self.kz, self.kz)
+
+    def add(self, a: torch.Tensor, wcol: torch.Tensor) -> None:
+        """Add the rows ``a`` (n, K) with weights ``wcol`` (n, 1)."""
+        kz, h = self.kz, self.h
+        if kz == 0:
+            return
+        az = a if self.nz is None else a[:, self.nz]
+        n = az.shape[0]
+        fits = self.work.shape[1] >= kz
+        step = self.work.shape[0] if fits else n
+        for s in range(0, n, step):
+            blk, wc = az[s:s + step], wcol[s:s + step]
+            aw = torch.mul(blk, wc, out=self.work[:blk.shape[0], :kz]) if fits else blk * wc
+            self.g[:, :h].addmm_(aw.T, blk[:, :h])
+            if h < kz:
+                self.g[h:, h:].addmm_(aw[:, h:].T, blk[:, h:])
+
+    def total(self) -> torch.Tensor:
+        """Return the symmetric ``(K, K)`` Gram of every row added."""
+        gz = torch.tril(self.g) + torch.tril(self.g, -1).T
+        if self.nz is None:
+            return gz
+        g = gz.new_zeros(self.k, self.k)
+        g[self.nz[:, None], self.nz[None, :]] = gz
+        return g
 
 
 #: Channels whose weights equal channel 0's times a constant to this relative tolerance share
@@ -538,42 +560,46 @@ def _accumulate(design, b, w, cs, chunk, split, live=None):
 
     One pass over the rows in chunks; each half's Gram from its own rows (so each row enters
     one product), the total is their sum. A shared design whose channels' weights are
-    proportional (:func:`_weight_ratios`) gets one Gram for all channels, times
-    ``α_c channel_scale²``; ``Aᵀ W b`` is always formed from each channel's own weights.
-    Halves stored contiguously (``split`` sorted) are sliced, not copied. ``live``: the
-    design's columns that may be nonzero (:func:`_weighted_gram`). ``shared``: whether every
-    channel's (half) Gram is one Gram times a channel factor.
+    proportional (:func:`_weight_ratios`) gets one Gram per half for all channels, times
+    ``α_c channel_scale²`` once at the end; ``Aᵀ W b`` is always formed from each channel's
+    own weights. Halves stored contiguously (``split`` sorted) are sliced, not copied.
+    ``live``: the design's columns that may be nonzero (:class:`_GramSum`; found by scanning a
+    tensor design when ``None``). ``shared``: whether every channel's (half) Gram is one Gram
+    times a channel factor.
     """
     n, nch = b.shape
-    halves = None
     alpha = _weight_ratios(w)
     wb_all = w * b
-    work = None  # weighted rows of one chunk, reused (_weighted_gram)
+    if live is None and not callable(design):
+        live = (design != 0).flatten(0, -2).any(0)
+    sums = rhs = None  # per half: _GramSum per Gram owner; (C, K) right-hand sides
+    shared = False
     for s, e, a in _design_chunks(design, n, chunk):
         a = a.to(torch.float64)
-        if halves is None:
+        if sums is None:
             k = a.shape[-1]
-            halves = (torch.zeros(2, nch, k, k, dtype=torch.float64, device=b.device),
-                      torch.zeros(2, nch, k, dtype=torch.float64, device=b.device))
-            work = a.new_empty((min(chunk, n, GRAM_WORK_ROWS), k))
+            shared = a.ndim == 2 and alpha is not None
+            work = a.new_empty((min(chunk, n, GRAM_WORK_ROWS), k))  # weighted rows, reused
+            sums = [[_GramSum(k, live, work, b) for _ in range(1 if shared else nch)]
+                    for _ in range(2)]
+            rhs = torch.zeros(2, nch, k, dtype=torch.float64, device=b.device)
         for h, rows in _half_ranges(split, s, e):
             ah, wh, wb = a[rows], w[s:e][rows], wb_all[s:e][rows]
-            if ah.ndim == 2 and alpha is not None:
-                g1 = _weighted_gram(ah, wh[:, :1], live, work)  # (K, K)
-                r1 = (wb.T @ ah).T  # (K, C); half the CPU time of ah.T @ wb (measured)
-                for c in range(nch):
-                    sc = 1.0 if cs is None else cs[c]
-                    halves[0][h, c] += g1 * (alpha[c] * sc * sc)
-                    halves[1][h, c] += r1[:, c] * sc
+            if shared:
+                sums[h][0].add(ah, wh[:, :1])
+                rhs[h] += wb.T @ ah  # (C, K); half the CPU time of ah.T @ wb (measured)
                 continue
             for c in range(nch):
                 ac = ah if ah.ndim == 2 else ah[:, c, :]
-                sc = 1.0 if cs is None else cs[c]
-                halves[0][h, c] += _weighted_gram(ac, wh[:, c:c + 1], live, work) * (sc * sc)
-                halves[1][h, c] += (wb[:, c] @ ac) * sc
-    gram, rhs = halves[0].sum(0), halves[1].sum(0)
-    shared = alpha is not None and a.ndim == 2  # every channel's Grams are one Gram, scaled
-    return gram, rhs, halves if split is not None else None, shared
+                sums[h][c].add(ac, wh[:, c:c + 1])
+                rhs[h, c] += wb[:, c] @ ac
+    sc = torch.ones(nch, dtype=torch.float64, device=b.device) if cs is None else cs
+    fac = sc * sc * (alpha if shared else 1.0)
+    gh = torch.stack([torch.stack([sums[h][0 if shared else c].total() * fac[c]
+                                   for c in range(nch)]) for h in range(2)])
+    rh = rhs * sc[None, :, None]
+    gram, rh_sum = gh.sum(0), rh.sum(0)
+    return gram, rh_sum, (gh, rh) if split is not None else None, shared
 
 
 def _scatter_columns(cols, k, gram, rhs, halves):
@@ -597,6 +623,27 @@ def _live_columns(g: torch.Tensor) -> torch.Tensor:
     return (g != 0).any(-1)
 
 
+@contextmanager
+def _lapack_one_thread():
+    """Run the dense factorisations of one (K ≤ ~1000) matrix on one thread, then restore.
+
+    Measured on the shared 2-core VM (load 4): ``eigh`` of 234² costs 2.7 ms CPU on one thread
+    and 4–8 ms on two, 625² 32 against 54–78 ms, 1024² 150 against 165 ms, and inside the
+    309k-sample Lambertian fit at two threads its 26 ``eigh`` took 7.3 s CPU (0.03 s on one):
+    LAPACK's many small parallel regions wait for a second core the other jobs hold. The
+    thread count is per process; nothing else runs while it is lowered.
+    """
+    threads = torch.get_num_threads()
+    if threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def _eigh_live(g: torch.Tensor, sc: torch.Tensor, live: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Eigen-decomposition ``(ev, u)`` of a symmetric PSD ``g`` (scaled by ``sc`` for eigh).
@@ -608,10 +655,11 @@ def _eigh_live(g: torch.Tensor, sc: torch.Tensor, live: torch.Tensor
     idx = torch.nonzero(live).flatten()
     nl = int(idx.numel())
     gl = g if nl == kc else g[idx[:, None], idx[None, :]]
-    try:
-        ev, u = torch.linalg.eigh(gl / sc)
-    except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
-        u, ev, _ = torch.linalg.svd(gl / sc)  # symmetric PSD: the same factorisation
+    with _lapack_one_thread():
+        try:
+            ev, u = torch.linalg.eigh(gl / sc)
+        except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
+            u, ev, _ = torch.linalg.svd(gl / sc)  # symmetric PSD: the same factorisation
     ev = ev.clamp_min(0.0) * sc
     if nl == kc:
         return ev, u
@@ -633,7 +681,8 @@ def _shifted_inverse(m: torch.Tensor, lam: float, live: torch.Tensor) -> torch.T
     else:
         ml = m[idx[:, None], idx[None, :]]
     ml.diagonal().add_(lam)
-    inv_l = torch.cholesky_inverse(torch.linalg.cholesky(ml))
+    with _lapack_one_thread():
+        inv_l = torch.cholesky_inverse(torch.linalg.cholesky(ml))
     if int(idx.numel()) == kc:
         return inv_l
     out = torch.diag(torch.full((kc,), 1.0 / lam, dtype=m.dtype, device=m.device))
@@ -699,16 +748,23 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     cs = None if channel_scale is None else channel_scale.to(torch.float64).to(dev)
     live = getattr(design, "live", None)  # columns that may be nonzero, when the design says
     cols = None  # the columns the passes over the samples form (None: all K)
+    full_live_rows = None  # the design's LiveRows (2-D rows of its live columns), if any
     if live is not None:
         live = live.to(dev)
         if callable(design) and getattr(design, "live_rows", None) is not None:
             cols = torch.nonzero(live).flatten()
             design, live = design.live_rows, None
+            full_live_rows = design
             if int(cols.numel()) == k:
                 cols = None
     kp = k if cols is None else int(cols.numel())
-    if callable(design) and n * kp <= MATERIALIZE_LIMIT:
-        design = design(0, n)
+    if callable(design):
+        # rows asked for in blocks (block_rows; a LiveRows design is 2-D, any other callable
+        # may be (n, C, K)), evaluated again on each of the two passes (ROW_BLOCK_ENTRIES)
+        width = k if full_live_rows is not None else k * nch
+        chunk = block_rows(width, chunk)
+        if n <= chunk:
+            design = design(0, n)
     sp = None if split is None else split.to(dev).long()
     gram, rhs, halves, shared_gram = _accumulate(design, b, w, cs, chunk, sp, live)
     if cols is not None:  # back to all K columns (the dead ones exactly 0)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 from brdfcap.fit.sh import band_of_index, real_sh
-from brdfcap.fit.solve import solve_bayes
+from brdfcap.fit.solve import PANEL_GRAM_COLUMNS, _GramSum, solve_bayes
 
 
 def _problem(n=3000, lmax=4, seed=0):
@@ -45,3 +45,27 @@ def test_zero_columns_are_exact_and_callable_design_matches_tensor():
     torch.testing.assert_close(fun.coefficients, ref.coefficients, rtol=1e-9, atol=1e-12)
     assert not ref.determined[band == 3].any() and not ref.determined[band == 5].any()
     assert ref.determined[band <= 1].all()
+
+
+def test_gram_sum_over_blocks_is_the_direct_gram():
+    """The running Gram (live columns, two panels from 512 columns, a small reused work buffer)
+    equals ``Aᵀ diag(w) A`` formed at once, to float64 rounding.
+    """
+    g = torch.Generator().manual_seed(3)
+    lmax = 23  # 576 columns: the two-panel path
+    assert (lmax + 1) ** 2 >= PANEL_GRAM_COLUMNS
+    nrm = torch.nn.functional.normalize(torch.randn(1500, 3, generator=g, dtype=torch.float64),
+                                        dim=-1)
+    a = real_sh(nrm, lmax)
+    band = band_of_index(lmax)
+    w = torch.rand(1500, 1, generator=g, dtype=torch.float64) + 0.1
+    ref = a.T @ (a * w)
+    for live in (None, (band % 2 == 0) | (band == 1)):
+        ab = a if live is None else a * live
+        acc = _GramSum(a.shape[1], live, a.new_empty(256, a.shape[1]), a)
+        for s in range(0, 1500, 700):  # blocks of 700 rows, weighted 256 at a time
+            acc.add(ab[s:s + 700], w[s:s + 700])
+        got = acc.total()
+        want = ref if live is None else ref * (live[:, None] & live[None, :])
+        assert torch.equal(got, got.T)
+        assert float((got - want).abs().max()) <= 1e-12 * float(want.abs().max())
