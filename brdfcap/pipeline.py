@@ -36,7 +36,14 @@ from brdfcap.core.jsonsafe import json_safe
 from brdfcap.core.profiling import StageProfiler
 from brdfcap.core.provenance import config_record, provenance, versions
 from brdfcap.fit.lighting import AlbedoFit, SHFit
-from brdfcap.fit.problems import FitOptions, FitResult, Known, get_problem, solve_problem
+from brdfcap.fit.problems import (
+    FitOptions,
+    FitResult,
+    Known,
+    check_lmax,
+    get_problem,
+    solve_problem,
+)
 from brdfcap.fit.sh import real_sh
 from brdfcap.reconstruct.geometry import (
     CenteredScene,
@@ -155,10 +162,7 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
     if len(samples) == 0:
         raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
                        capture.config.toml_path)
-    if options.lmax == "auto" and options.problem not in ("auto", "lighting"):
-        raise FitError(f"lmax 'auto': only problems lighting and auto choose the band from the "
-                       f"data; give an integer lmax for problem {options.problem}",
-                       capture.config.toml_path)
+    check_lmax(options.problem, options.lmax, capture.config.toml_path)
     fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
                           brdf_lmax=options.brdf_lmax, design=options.design)
     return solve_problem(options.problem, samples, known_of(capture, options, samples),

@@ -21,7 +21,7 @@ from brdfcap.core.device import resolve_device
 from brdfcap.core.errors import BrdfcapError
 from brdfcap.export import export_results
 from brdfcap.fit.brdf import BRDF_NAMES
-from brdfcap.fit.problems import PROBLEMS
+from brdfcap.fit.problems import PROBLEMS, check_lmax
 from brdfcap.pipeline import RunOptions
 
 from .common import CliState, fail
@@ -258,9 +258,10 @@ def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int | str,
                     f"'brdfcap import-diligent {path} CAPTURE_DIR'")
         fail(BrdfcapError("no capture.toml found at or under this directory" + hint, path),
               debug)
-    if lmax == "auto" and problem not in ("auto", "lighting"):
-        fail(BrdfcapError(f"--lmax auto: only problems lighting and auto choose the band from "
-                          f"the data; give --lmax N for --problem {problem}"), debug)
+    try:
+        check_lmax(problem, lmax)  # before a batch starts: one line, nothing written
+    except BrdfcapError as exc:
+        fail(exc, debug)
     single = len(captures) == 1 and captures[0] == path
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
                       brdf_lmax=brdf_lmax, design=design)

@@ -19,12 +19,13 @@ from .base import (
     Known,
     Problem,
     brdf_from_material,
+    check_lmax,
     get_problem,
     register_problem,
 )
 
 __all__ = ["PROBLEMS", "FIT_SCHEMA", "Problem", "FitOptions", "Known", "FitResult", "Estimate",
-           "solve_problem", "register_problem", "get_problem", "brdf_from_material",
+           "solve_problem", "register_problem", "get_problem", "check_lmax", "brdf_from_material",
            "lighting_json", "conditioning_json", "auto", "lighting", "brdf", "brdf_isotropic",
            "both", "decomposition", "aldrian_smith", "brdf_map"]
 

@@ -77,4 +77,4 @@ def problem_auto(samples, known: Known, opts: FitOptions) -> FitResult:
 register_problem(Problem(
     "auto", problem_auto,
     "Lambertian lighting (environment), per-pixel Lambertian+Phong (normal map, distant "
-    "lights) or Lambertian albedo (mesh, distant lights)"))
+    "lights) or Lambertian albedo (mesh, distant lights)", lmax_auto=True))

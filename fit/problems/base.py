@@ -26,6 +26,7 @@ from ..brdf_models import BRDF_MODELS, BRDFSpec
 from ..result import Estimate, FitResult
 
 __all__ = ["FitOptions", "Known", "Problem", "PROBLEMS", "register_problem", "get_problem",
+           "check_lmax",
            "brdf_from_material", "need_environment", "need_known_lighting", "lighting_estimate",
            "material_estimates"]
 
@@ -93,6 +94,8 @@ class Problem:
     """A registered problem: its name, its function and what it needs known.
 
     ``needs_known_lighting``: the pipeline loads :attr:`Known.lighting_sh` before calling it.
+    ``lmax_auto``: it accepts ``FitOptions.lmax = "auto"`` (the band the data determine,
+    ``conditioning.suggest_lmax``); :func:`check_lmax` refuses ``"auto"`` for the others.
     ``description``: one line for ``--help`` and ``docs/fitting.md``.
     """
 
@@ -101,6 +104,7 @@ class Problem:
     description: str
     needs_known_lighting: bool = False
     aliases: tuple[str, ...] = field(default_factory=tuple)
+    lmax_auto: bool = False
 
 
 #: name -> :class:`Problem`, in registration order (the CLI's ``--problem`` choices).
@@ -120,6 +124,19 @@ def get_problem(name: str) -> Problem:
     if name not in PROBLEMS:
         raise FitError(f"unknown problem {name!r}; valid: {sorted(PROBLEMS)}")
     return PROBLEMS[name]
+
+
+def check_lmax(problem: str, lmax: int | str, source: str | Path | None = None) -> None:
+    """Refuse ``lmax = "auto"`` for a problem that fits a given band (one-line :class:`FitError`).
+
+    Only problems with :attr:`Problem.lmax_auto` choose the band from the data; the message
+    names them, the default problem last.
+    """
+    if lmax != "auto" or get_problem(problem).lmax_auto:
+        return
+    names = sorted((n for n, p in PROBLEMS.items() if p.lmax_auto), key=lambda n: n == "auto")
+    raise FitError(f"lmax 'auto': only problems {' and '.join(names)} choose the band from the "
+                   f"data; give an integer (--lmax N) for problem {problem}", source)
 
 
 def _rgb(v, n: int = 3) -> list[float]:

@@ -60,4 +60,4 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
 
 
 register_problem(Problem("lighting", problem_lighting,
-                         "SH lighting with the BRDF known ([material], --brdf)"))
+                         "SH lighting with the BRDF known ([material], --brdf)", lmax_auto=True))

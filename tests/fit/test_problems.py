@@ -73,3 +73,22 @@ def test_problems_need_what_they_use():
                             material={"model": "microfacet", "sigma": 0.2}), FitOptions())
     with pytest.raises(FitError, match="environment-lit"):
         solve_problem("lighting", samples, Known(lighting_kind="directional"), FitOptions())
+
+
+def test_check_lmax_auto_only_where_the_problem_chooses_the_band():
+    """``lmax = "auto"`` is refused in one line, naming the problems that take it (the
+    registry's ``lmax_auto``), for every other problem; integers pass everywhere."""
+    from brdfcap.core.errors import FitError
+    from brdfcap.fit.problems import PROBLEMS, check_lmax
+
+    takes = {n for n, p in PROBLEMS.items() if p.lmax_auto}
+    assert takes == {"lighting", "auto"}
+    for name in PROBLEMS:
+        check_lmax(name, 4)
+        if name in takes:
+            check_lmax(name, "auto")
+            continue
+        with pytest.raises(FitError, match="only problems lighting and auto choose the band") \
+                as info:
+            check_lmax(name, "auto", "c/capture.toml")
+        assert name in str(info.value) and "\n" not in str(info.value)
