@@ -77,9 +77,11 @@ def test_problems_need_what_they_use():
 
 def test_check_lmax_auto_only_where_the_problem_chooses_the_band():
     """``lmax = "auto"`` is refused in one line, naming the problems that take it (the
-    registry's ``lmax_auto``), for every other problem; integers pass everywhere."""
-    from brdfcap.core.errors import FitError
+    registry's ``lmax_auto``), for every other problem; integers pass everywhere.
+    """
     from brdfcap.fit.problems import PROBLEMS, check_lmax
+
+    from brdfcap.core.errors import FitError
 
     takes = {n for n, p in PROBLEMS.items() if p.lmax_auto}
     assert takes == {"lighting", "auto"}
