@@ -24,6 +24,7 @@ from brdfcap.core.errors import FitError
 from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
 from .conditioning import (
     BAYES_DEFINITION,
+    ERROR_BOUND_LEVEL,
     ERROR_BOUND_LIMIT,
     HIDDEN_SOURCE_LMAX,
     ZERO_BAND_LIMIT,
@@ -294,24 +295,18 @@ class LiveRows:
         self.design, self.n, self.keep, self.chunk = design, n, keep, chunk
         self.into = into  # design(s, e, out=...) writes its rows into out
         self.width = int(live.sum())
-        self.runs, start = [], None  # [start, stop) of each run of live columns
-        for i, v in enumerate(live.tolist() + [False]):
-            if v and start is None:
-                start = i
-            elif not v and start is not None:
-                self.runs.append((start, i))
-                start = None
-        self.rows, self.lmax, self.filt = rows, lmax, filt
+        self.all_live = self.width == live.numel()  # the rows need no gather
+        self.rows, self.lmax = rows, lmax
         self.cols = torch.nonzero(live.cpu()).flatten()
         self.filt_live = None if filt is None else filt[self.cols.to(filt.device)]
         self.table: torch.Tensor | None = None
 
     def _rows_into(self, out: torch.Tensor | None, s: int, e: int) -> torch.Tensor:
         """Rows ``s:e`` of the live columns, written into ``out`` (new when ``None``)."""
-        if self.into and out is not None and self.runs == [(0, out.shape[1])]:
+        if self.into and out is not None and self.all_live:
             return self.design(s, e, out=out)
         full = self.design(s, e) if self.rows is None else self.rows(s, e, self.lmax)
-        if self.rows is None and self.runs == [(0, full.shape[1])]:
+        if self.rows is None and self.all_live:
             if out is None:
                 return full
             out.copy_(full)
@@ -909,6 +904,11 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         def residual():
             return full.bayes.residual if perm is None else full.bayes.residual[perm]
 
+        def shares(tau_):
+            """Per sample, truncation over noise variance (worst channel), and its quantile."""
+            ratio_ = (tau_[None, :] * t * w / scl[None, :]).amax(-1)
+            return ratio_, float(torch.quantile(ratio_[used], TRUNCATION_QUANTILE))
+
         t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
         tau, scl = truncation_scale(residual(), var0, t, noise_known)
         # how far to solve: the lighting above L at least as strong as the last band the data
@@ -916,12 +916,9 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         # view of Beckmann σ = 0.4 under Grace, L = 10: white residual, τ² by ML 0, while the
         # true lighting above L passed by the kernels is 2 noise s.d. RMS and biased bands 0-2
         # by up to 2.5 s.d. (docs/fitting.md, "Truncation the residual cannot show")
-        ratio = (tau[None, :] * t * w / scl[None, :]).amax(-1)
-        share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
+        ratio, share = shares(tau)
         if share <= TRUNCATION_REL:  # the residual shows none: the flat tail's prediction
-            tau_l = torch.maximum(tau, resolved_tail_power(full).to(tau))
-            ratio = (tau_l[None, :] * t * w / scl[None, :]).amax(-1)
-            share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
+            ratio, share = shares(torch.maximum(tau, resolved_tail_power(full).to(tau)))
         raised = lint < lcap and share > TRUNCATION_REL
         if raised:
             # one step up, predicted from the lobe's normal-exitance tail (R&H's addition
@@ -954,8 +951,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             # noise model alone (the old band's solution lacks what made the raise; it was
             # kept and reported as L before)
             full = solve_weighted(w, lint, src)
-        ratio = (tau[None, :] * t * w / scl[None, :]).amax(-1)
-        share = float(torch.quantile(ratio[used], TRUNCATION_QUANTILE))
+        ratio, share = shares(tau)
         if w_t is not w:
             w = w_t
             dom = int((ratio > 1.0).sum())
@@ -1043,8 +1039,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                  "hidden_source": {"intensity": hid.tolist(), "direction": hid_dir.tolist(),
                                    "text": "brightest point source (band-limited to "
                                            f"{min(lint, HIDDEN_SOURCE_LMAX)}) the samples would "
-                                           "not detect (chi2 below its 0.99 quantile), at their "
-                                           "least-seen direction"}}
+                                           f"not detect (chi2 below its {ERROR_BOUND_LEVEL:g} "
+                                           "quantile), at their least-seen direction"}}
     fit.adequacy = adequacy
     fit.suggested_lmax = suggested
     return fit

@@ -748,20 +748,19 @@ def solve_bayes(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: to
     cs = None if channel_scale is None else channel_scale.to(torch.float64).to(dev)
     live = getattr(design, "live", None)  # columns that may be nonzero, when the design says
     cols = None  # the columns the passes over the samples form (None: all K)
-    full_live_rows = None  # the design's LiveRows (2-D rows of its live columns), if any
+    live_rows = False  # the design is its LiveRows (2-D rows of its live columns)
     if live is not None:
         live = live.to(dev)
         if callable(design) and getattr(design, "live_rows", None) is not None:
             cols = torch.nonzero(live).flatten()
-            design, live = design.live_rows, None
-            full_live_rows = design
+            design, live, live_rows = design.live_rows, None, True
             if int(cols.numel()) == k:
                 cols = None
     kp = k if cols is None else int(cols.numel())
     if callable(design):
         # rows asked for in blocks (block_rows; a LiveRows design is 2-D, any other callable
         # may be (n, C, K)), evaluated again on each of the two passes (ROW_BLOCK_ENTRIES)
-        width = k if full_live_rows is not None else k * nch
+        width = k if live_rows else k * nch
         chunk = block_rows(width, chunk)
         if n <= chunk:
             design = design(0, n)
