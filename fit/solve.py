@@ -54,7 +54,7 @@ from .memory import check_wls_memory
 
 __all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restrict", "block_rows",
            "SLOPE_GRID", "SLOPE_PRIOR", "EVIDENCE_GRID", "RATIO_LIMIT", "noise_weights",
-           "drop_nonfinite_directions",
+           "NO_NOISE_MODEL", "drop_nonfinite_directions",
            "default_band_penalty",
            "REGULARIZATION_RULES", "EIG_RTOL",
            "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID"]
@@ -123,6 +123,11 @@ def default_band_penalty(lmax: int) -> torch.Tensor:
     return l * (l + 1.0) + 0.01
 
 
+#: ``noise_source`` of a fit without a noise model (uniform weights, σ² from the residual): its
+#: χ² is 1 by construction or meaningless, never a test of the model (reports say so).
+NO_NOISE_MODEL = "estimated from the fit residual (no noise model)"
+
+
 def noise_weights(radiance: torch.Tensor, variance: torch.Tensor | None
                   ) -> tuple[torch.Tensor, str]:
     """Least-squares weights ``1/σ²`` from a per-sample variance, floored (see module doc).
@@ -142,7 +147,7 @@ def noise_weights(radiance: torch.Tensor, variance: torch.Tensor | None
     """
     b = radiance.to(torch.float64)
     if variance is None:
-        return torch.ones_like(b), "estimated from the fit residual (no noise model)"
+        return torch.ones_like(b), NO_NOISE_MODEL
     scale = b.abs().nan_to_num(0.0).median(dim=0).values.clamp_min(1e-300)
     var = variance.to(torch.float64) + (VARIANCE_FLOOR_REL * scale) ** 2
     w = 1.0 / var

@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from brdfcap.fit.solve import NO_NOISE_MODEL
 
 from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
 
@@ -100,7 +101,9 @@ def _verdict(results: dict) -> tuple[str, str]:
                     else "bad", f"{src['verdict']}" + (f": {detail}" if detail else ""))
     fit = results.get("fit") or {}
     rel = fit.get("residual_rel")
-    chi2 = (results.get("lighting") or {}).get("chi2_reduced")
+    lt = results.get("lighting") or {}
+    # χ² from uniform weights (σ² estimated from the same residual) tests nothing: not shown
+    chi2 = None if NO_NOISE_MODEL in str(lt.get("noise_source") or "") else lt.get("chi2_reduced")
     rel_txt = f"RMS residual {fmt_num(100 * rel, 2)}% of the mean signal" if _is_num(rel) else ""
     if is_number_list(chi2) and all(_is_num(c) for c in chi2):
         worst = max(chi2)

@@ -34,3 +34,21 @@ def test_determined_dc_gets_no_gauge_note():
     rows = headline(_both_results(True))["rows"]
     light = next(r for r in rows if r["quantity"].startswith("lighting"))
     assert "gauge" not in light["value"]
+
+
+def test_no_chi2_verdict_without_a_noise_model():
+    """Issue 12's done-when: no report shows χ² from uniform weights. ``--problem both``
+    without a noise model carried χ² ~5e-6 and read "yes, to the noise level".
+    """
+    from brdfcap.fit.solve import NO_NOISE_MODEL
+
+    r = _both_results(False)
+    r["fit"]["residual_rel"] = 0.012
+    r["lighting"]["chi2_reduced"] = [5.1e-06, 1.7e-06, 4.1e-06]
+    r["lighting"]["noise_source"] = NO_NOISE_MODEL
+    cls, text = headline(r)["verdict"]
+    assert "χ²" not in text and "no noise model to compare with" in text and cls == ""
+    r["lighting"]["noise_source"] = "capture noise model"
+    r["lighting"]["chi2_reduced"] = [1.0, 1.1, 0.9]
+    cls, text = headline(r)["verdict"]
+    assert "reduced χ² per channel" in text and cls == "ok"
