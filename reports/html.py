@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import jinja2
+from brdfcap.fit.solve import NO_NOISE_MODEL
 
 from brdfcap.core.atomic import write_text_atomic
 
@@ -149,7 +150,7 @@ def render_report(inp: ReportInputs) -> str:
         r=r, figures=inp.figures, summary=inp.summary, warnings=inp.warnings, v=views,
         chain_keys=keys, chain_common=common, per_view=per_view, fmt=_fmt, fmt_pm=fmt_pm,
         fmt_rgb=fmt_rgb, fmt_rgb_pm=fmt_rgb_pm, fmt_band=fmt_band, fmt_num=fmt_num,
-        extras=inp.extras)
+        extras=inp.extras, no_noise_model=NO_NOISE_MODEL)
 
 
 def write_report(path: str | Path, inp: ReportInputs) -> Path:

@@ -9,6 +9,7 @@ import re
 import pytest
 from brdfcap.capture.simulate import simulate
 from brdfcap.fit.datasets import GRACE_RH2001
+from brdfcap.fit.solve import NO_NOISE_MODEL
 from click.testing import CliRunner
 
 from brdfcap.cli import main
@@ -116,7 +117,10 @@ def test_lmax_auto_reports_the_band_the_data_determine(captures, tmp_path):
     assert r1["lighting"]["suggested_lmax"] == lt["suggested_lmax"]
     assert f"suggested lmax: the images determine every observable band up to l = " \
            f"{lt['suggested_lmax']}" in res.output
-    assert f"--lmax {lt['suggested_lmax']}" in (tmp_path / "f" / "report.html").read_text()
+    html = (tmp_path / "f" / "report.html").read_text()
+    assert f"--lmax {lt['suggested_lmax']}" in html
+    # this capture has no noise model: no χ² from uniform weights anywhere in the report
+    assert r1["lighting"]["noise_source"] == NO_NOISE_MODEL and "χ²" not in html
     for args, msg in ((["--problem", "brdf", "--lmax", "auto"],
                        "only problems lighting and auto choose the band from the data"),
                       (["--lmax", "two"], "neither an integer band nor 'auto'")):

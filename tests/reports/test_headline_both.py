@@ -52,3 +52,4 @@ def test_no_chi2_verdict_without_a_noise_model():
     r["lighting"]["chi2_reduced"] = [1.0, 1.1, 0.9]
     cls, text = headline(r)["verdict"]
     assert "reduced χ² per channel" in text and cls == "ok"
+
