@@ -64,11 +64,12 @@ from .solve import (
 )
 
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
+           "internal_prediction", "reported_bands_share",
            "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
            "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
            "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
            "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES",
-           "resolved_tail_power"]
+           "resolved_tail_power", "REPORTED_SHARE_ABS", "REPORTED_SHARE_RATIO"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -93,6 +94,11 @@ TRUNCATION_TOL = 0.25
 TRUNCATION_REL = 0.1
 TRUNCATION_QUANTILE = 0.5
 TRUNCATION_LMAX_CAP = 40
+#: The adequacy verdict says what the reported bands alone leave (:func:`reported_bands_share`)
+#: when their RMS residual exceeds this fraction of the mean signal and this multiple of the
+#: internal solution's.
+REPORTED_SHARE_ABS = 0.01
+REPORTED_SHARE_RATIO = 2.0
 
 
 #: Most entries (N × K, float64) of one kept table of SH rows (:class:`SHRows`) whatever the
@@ -747,22 +753,80 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
 
 
 def predict_radiance(fit: SHFit, normal: torch.Tensor, reflected: torch.Tensor | None,
-                     chunk: int = 32768) -> torch.Tensor:
+                     chunk: int = 32768, internal: bool = False) -> torch.Tensor:
     """Radiance ``(N, C)`` the fitted lighting predicts, by the design the fit used.
 
     ``fit.design["used"]`` (``"exact"`` or R&H's form) and the fit's BRDF; ``normal``,
-    ``reflected`` as for :func:`fit_lighting`.
+    ``reflected`` as for :func:`fit_lighting`. ``internal``: from the internal solution (bands
+    up to ``fit.internal_lmax``, method "bayes") instead of the reported bands.
     """
     n = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
     r = None if reflected is None else torch.nn.functional.normalize(
         reflected.to(torch.float64), dim=-1)
     used = getattr(fit, "design", {}).get("used", "rh")
-    d, scale = lighting_design(fit.brdf, n, r, fit.lmax,
-                               design="exact" if used == "exact" else "rh")
-    x = fit.coefficients.to(torch.float64)
+    inner = internal and fit.internal_coefficients is not None
+    lmax = fit.internal_lmax if inner else fit.lmax
+    x = (fit.internal_coefficients if inner else fit.coefficients).to(torch.float64)
+    chunk = max(256, min(chunk, (1 << 22) // x.shape[0]))  # rows x K at most 32 MiB
+    d, scale = lighting_design(fit.brdf, n, r, lmax, design="exact" if used == "exact" else "rh")
     return torch.cat([apply_design(d(s, min(s + chunk, n.shape[0])), scale, x)
                       for s in range(0, n.shape[0], chunk)]) if n.shape[0] else \
         x.new_zeros(0, x.shape[1])
+
+
+def internal_prediction(fit: SHFit, normal: torch.Tensor, reflected: torch.Tensor | None,
+                        radiance: torch.Tensor) -> torch.Tensor:
+    """Radiance ``(N, C)`` of the internal solution: the model the adequacy verdict judges.
+
+    ``radiance - fit.internal_residual`` on the samples the fit weighted (the solve's own
+    residual pass, no second design evaluation); the design of the internal bands on the others
+    (saturated or masked samples). The reported bands' prediction where the fit kept no
+    internal solution (method "tikhonov").
+    """
+    if fit.internal_residual is None:
+        return predict_radiance(fit, normal, reflected)
+    b = radiance.to(torch.float64)
+    res = fit.internal_residual.to(b.device)
+    used = fit.internal_used.to(b.device)
+    pred = torch.where(used[:, None], b - res, torch.zeros_like(b))
+    idle = (~used).nonzero().flatten()
+    if idle.numel():
+        pred[idle] = predict_radiance(fit, normal[idle],
+                                      None if reflected is None else reflected[idle],
+                                      internal=True).to(b.device)
+    return pred
+
+
+def reported_bands_share(fit: SHFit, radiance: torch.Tensor, reported: torch.Tensor,
+                         internal: torch.Tensor) -> dict | None:
+    """How much of the signal the reported bands alone leave, next to the internal solution's.
+
+    The reported bands (l ≤ lmax) are marginalised over the bands up to ``internal_lmax``
+    (``docs/fitting.md#uncertainty``); re-rendered alone they omit what those bands carry. Per
+    channel, RMS residual over the weighted samples relative to the mean signal. ``None`` when
+    the fit solved no band above lmax.
+    """
+    if fit.internal_residual is None or (fit.internal_lmax or 0) <= fit.lmax:
+        return None
+    used = fit.internal_used.to(radiance.device)
+    b = radiance.to(torch.float64)[used]
+    mean = b.abs().mean(0).clamp_min(1e-300)
+
+    def rel(p):
+        return ((b - p.to(b)[used]).pow(2).mean(0).sqrt() / mean).tolist()
+
+    rep, inn = rel(reported), rel(internal)
+    shown = max(rep) > max(REPORTED_SHARE_ABS, REPORTED_SHARE_RATIO * max(inn))
+    text = ""
+    if shown:
+        text = (f"the reported bands l ≤ {fit.lmax} alone leave "
+                f"{100 * max(rep):.3g}% of the signal (the internal solution to l = "
+                f"{fit.internal_lmax}: {100 * max(inn):.3g}%): bands {fit.lmax + 1}–"
+                f"{fit.internal_lmax} carry the rest; the fit solves them and the reported "
+                f"errors include their uncertainty, but only a larger --lmax reports them")
+    return {"lmax": fit.lmax, "internal_lmax": fit.internal_lmax,
+            "reported_residual_rel_rms": rep, "internal_residual_rel_rms": inn,
+            "shown": shown, "text": text}
 
 
 def _design_record(spec: BRDFSpec, design: str) -> dict:
@@ -1030,6 +1094,9 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     fit.covariance = cov
     fit.posterior_stderr = post_se
     fit.internal_lmax = lint
+    fit.internal_coefficients = full.coefficients
+    fit.internal_residual = full.bayes.residual
+    fit.internal_used = scan(w > 0).any(-1)
     fit.prior = {"slope": bx.slope.tolist(), "scale": bx.prior_scale.tolist(),
                  "noise_scale": bx.noise_scale.tolist(),
                  "log_evidence": bx.log_evidence.tolist(),

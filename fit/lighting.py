@@ -49,6 +49,11 @@ class SHFit:
     covariance: torch.Tensor | None = None  # (C, K, K) posterior covariance (after widening)
     posterior_stderr: torch.Tensor | None = None  # (K, C) finite, sqrt(diag covariance)
     internal_lmax: int | None = None
+    #: the internal solution (bands 0..internal_lmax) and its residual b - A x̂ per input sample
+    #: ((N, C), 0 where a sample had no weight): the model the adequacy verdict judges
+    internal_coefficients: torch.Tensor | None = None
+    internal_residual: torch.Tensor | None = None
+    internal_used: torch.Tensor | None = None  # (N,) bool: the sample had a weight > 0
     prior: dict = field(default_factory=dict)  # slope, scale, noise scale per channel
     adequacy: dict = field(default_factory=dict)  # conditioning.model_adequacy
     suggested_lmax: int | None = None  # conditioning.suggest_lmax

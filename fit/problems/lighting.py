@@ -7,7 +7,12 @@ The BRDF is ``[material]`` (``--brdf`` overrides its model); the lighting is rec
 from __future__ import annotations
 
 from ..brdf_models import BRDFSpec
-from ..inverse_lighting import fit_lighting, predict_radiance
+from ..inverse_lighting import (
+    fit_lighting,
+    internal_prediction,
+    predict_radiance,
+    reported_bands_share,
+)
 from ..records import conditioning_json, lighting_json
 from ..result import FitResult
 from .base import (
@@ -37,7 +42,15 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
                        scale_fixing="" if given else (
                            "no [material]: Lambertian with the albedo fixed to 1 per channel, "
                            "so the coefficients are albedo x lighting"))
-    pred = predict_radiance(fit, samples.normal, samples.reflected)
+    # the residual images and RMS show the model the adequacy verdict judges: the internal
+    # solution (bands up to internal_lmax); what the reported bands alone leave is stated
+    pred = internal_prediction(fit, samples.normal, samples.reflected, samples.radiance)
+    share = reported_bands_share(fit, samples.radiance,
+                                 predict_radiance(fit, samples.normal, samples.reflected), pred)
+    if share is not None:
+        fit.adequacy["reported_bands"] = share
+        if share["shown"]:
+            fit.adequacy["verdict"] += "; " + share["text"]
     params = spec.parameters()
     rec = {"lighting": lighting_json(fit),
            "brdf": {"model": spec.model, "parameters": params,

@@ -55,6 +55,8 @@ def test_problem_lighting_known_phong(captures, tmp_path):
     err = max(abs(e - t) for re, rt in zip(est, GRACE_RH2001) for e, t in zip(re, rt))
     assert err < 5e-3 * GRACE_RH2001[0][0]
     assert r["conditioning"]["lighting"]["predicted"]["model"] == "phong"
+    # every band of the lighting reported: re-rendering the reported bands leaves little
+    assert not r["lighting"]["adequacy"]["reported_bands"]["shown"]
     for key in ("stderr", "stderr_unregularised", "snr", "regularization", "bands"):
         assert key in r["lighting"]
     assert (tmp_path / "o" / "report.html").read_text().count("measured vs predicted") >= 1
@@ -121,6 +123,18 @@ def test_lmax_auto_reports_the_band_the_data_determine(captures, tmp_path):
     assert f"--lmax {lt['suggested_lmax']}" in html
     # this capture has no noise model: no χ² from uniform weights anywhere in the report
     assert r1["lighting"]["noise_source"] == NO_NOISE_MODEL and "χ²" not in html
+    # the lighting has band 2 (Grace to l = 2): at --lmax 1 the verdict judges the internal
+    # solution, so do the residual images and RMS; what the reported bands alone leave is said
+    ad = r1["lighting"]["adequacy"]
+    rb = ad["reported_bands"]
+    assert ad["adequate"] and rb["shown"] and rb["lmax"] == 1 and rb["internal_lmax"] > 2
+    assert min(rb["reported_residual_rel_rms"]) > 0.2 > 0.01 > max(rb["internal_residual_rel_rms"])
+    assert r1["fit"]["residual_rel"] == pytest.approx(
+        sum(rb["internal_residual_rel_rms"]) / 3, rel=0.5)
+    assert "the reported bands l ≤ 1 alone leave" in res.output
+    assert "Re-rendered\nfrom the fit's internal solution" in html
+    # noiseless render: the z-scores are large, the errors inside the simulation's accuracy
+    assert "within the simulation's own accuracy" in res.output
     for args, msg in ((["--problem", "brdf", "--lmax", "auto"],
                        "only problems lighting and auto choose the band from the data"),
                       (["--lmax", "two"], "neither an integer band nor 'auto'")):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from brdfcap.reports.views import truth_comparison, truth_rows
 
 
@@ -25,3 +26,26 @@ def test_bounded_band_verdict_follows_the_truth():
         assert gt["lighting"]["bands"][1]["bound_holds"] is holds
         rows = truth_rows(gt, res)["bands"]
         assert rows[1][-1] == verdict and rows[0][-1] == "consistent", rows
+
+
+def test_large_z_within_the_simulations_own_accuracy():
+    """A band many std. errors off but by less than the simulator's own relative pixel error
+    (``renderer.measured.*.max_rel_err``) is said to agree as far as the truth is known; a band
+    off by more than that stays "biased", and without a measured accuracy nothing changes.
+    """
+    res = _results(0.01)
+    res["lighting"]["stderr"] = [[1e-5] * 3] + [[None] * 3] * 3
+    res["lighting"]["bands"] = [{"l": 0, "determined": True}]
+    res["lighting"]["coefficients"] = [[1.0002] * 3] + [[0.0] * 3] * 3  # z = 20, 0.02% off
+    truth = {"lighting": {"coefficients": [[1.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3]}}
+    for meas, within in (({"specular": {"max_rel_err": 0.005}, "diffuse": {"max_rel_err": 1e-4}},
+                          True),
+                         ({"diffuse": {"max_rel_err": 1e-4}}, False), (None, None)):
+        t = dict(truth, renderer={"name": "reference", "measured": meas} if meas else {})
+        gt = truth_comparison(res, t)
+        b0 = gt["lighting"]["bands"][0]
+        assert b0["error_rel_dc"] == pytest.approx(2e-4, rel=1e-6) and b0["max_abs_z"] > 19
+        assert b0.get("within_simulation_accuracy") is within
+        verdict = truth_rows(gt, res)["bands"][0][-1]
+        assert ("within the simulation's own accuracy" in verdict) is bool(within), verdict
+        assert ("biased" in verdict) is (not within), verdict
