@@ -311,8 +311,19 @@ def band_data_only_covariance(sol: LinearSolution, sel: torch.Tensor,
     ``None`` where that matrix is not positive definite (the data do not bound the band).
     """
     idx = torch.nonzero(sel).flatten()
-    data, d = _precision_less_prior(sol.covariance[c][idx[:, None], idx[None, :]],
-                                    sol.bayes.prior_variance[idx, c], 1.0)
+    ix = (idx[:, None], idx[None, :])
+    if sol.bayes.prior_covariance is not None:
+        # a full prior (fit.nonstationary): the band's own prior precision is the inverse of
+        # its marginal prior block (the diagonal case's Λ_l when the prior is diagonal)
+        cv = 0.5 * (sol.covariance[c][ix] + sol.covariance[c][ix].T)
+        d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
+        p0 = sol.bayes.prior_covariance[c][ix] * d[:, None] * d[None, :]
+        data = torch.linalg.inv(cv * d[:, None] * d[None, :]) \
+            - torch.linalg.inv(0.5 * (p0 + p0.T))
+        data = 0.5 * (data + data.T)
+    else:
+        data, d = _precision_less_prior(sol.covariance[c][ix],
+                                        sol.bayes.prior_variance[idx, c], 1.0)
     try:
         ch = torch.linalg.cholesky(data)
     except torch.linalg.LinAlgError:
@@ -380,11 +391,23 @@ def band_prior_weakening(sol: LinearSolution, kappa: float = PRIOR_WEAKENING,
     mu2 = sol.coefficients ** 2 / prior
     z = float(ndtri(level))
     out = torch.full_like(prior, float(kappa))
+    full = bx.prior_covariance
     for l in range(int(sol.band.max()) + 1):
         sel = sol.band == l
         gam = resolved[sel].sum(0)  # (C,)
+        ss = mu2[sel].sum(0)
+        if full is not None:
+            # a full prior (fit.nonstationary): per band, γ_l = n_l − tr(C0_ll⁻¹ C_ll) and the
+            # Mahalanobis Σ μ²/prior → μ_lᵀ C0_ll⁻¹ μ_l under the band's marginal prior block
+            idx = torch.nonzero(sel).flatten()
+            ix = (idx[:, None], idx[None, :])
+            for c in range(gam.shape[0]):
+                p0 = torch.linalg.inv(0.5 * (full[c][ix] + full[c][ix].T))
+                gam[c] = float(idx.numel()) - float(torch.trace(p0 @ sol.covariance[c][ix]))
+                mu = sol.coefficients[idx, c]
+                ss[c] = mu @ p0 @ mu
         g = gam.clamp_min(1e-300)
-        up = mu2[sel].sum(0) / g * torch.exp(z * (2.0 / g).sqrt())
+        up = ss / g * torch.exp(z * (2.0 / g).sqrt())
         k = torch.where(gam >= MEASURED_BAND_GAMMA, up.clamp(1.0, float(kappa)),
                         torch.full_like(up, float(kappa)))
         out[sel] = torch.nan_to_num(k, nan=float(kappa))[None, :]
@@ -413,6 +436,26 @@ def weak_prior_variance(sol: LinearSolution,
     inverted as above.
     """
     bx = sol.bayes
+    if bx.prior_precision is not None:
+        # a full prior C0 (fit.nonstationary): weaker by κ per coefficient is D C0 D with
+        # D = diag(sqrt κ), so the precision is C⁻¹ − C0⁻¹ + D⁻¹ C0⁻¹ D⁻¹
+        out = torch.empty_like(bx.posterior_variance)
+        for c in range(sol.covariance.shape[0]):
+            kc = (kappa[:, c] if isinstance(kappa, torch.Tensor) else
+                  torch.full_like(bx.posterior_variance[:, c], float(kappa))).to(torch.float64)
+            cv = 0.5 * (sol.covariance[c] + sol.covariance[c].T)
+            d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
+            p0 = bx.prior_precision[c] / (d[:, None] * d[None, :])
+            dk = kc.rsqrt()
+            prec = torch.linalg.inv(cv * d[:, None] * d[None, :]) - p0 \
+                + p0 * dk[:, None] * dk[None, :]
+            prec = 0.5 * (prec + prec.T)
+            try:
+                wc = torch.cholesky_inverse(torch.linalg.cholesky(prec))
+            except torch.linalg.LinAlgError:
+                wc = torch.linalg.pinv(prec, hermitian=True)
+            out[:, c] = torch.diagonal(wc).clamp_min(0.0) / d ** 2
+        return out
     per = isinstance(kappa, torch.Tensor)
     if per and bool((kappa == kappa.max()).all()):
         kappa, per = float(kappa.max()), False
@@ -502,10 +545,15 @@ def hidden_source(sol: LinearSolution, lmax_source: int = HIDDEN_SOURCE_LMAX,
     q = _chi2_quantile(level, 1)
     for c in range(nch):
         lam, s2 = float(sol.lam[c]), float(bx.noise_scale[c])
-        ps2 = (bx.prior_variance[:ks, c] * lam / s2).clamp_min(1e-300)
-        b = bx.whitened_basis[c][:ks] / ps2[:, None] \
-            * bx.whitened_eigenvalues[c].clamp_min(0.0).sqrt()[None, :]  # G_s = B Bᵀ
-        sens = ((y @ (b @ b.T)) * y).sum(-1).cpu()
+        if bx.prior_precision is not None:  # a full prior: G = σ² (C⁻¹ − C0⁻¹)
+            cv = 0.5 * (sol.covariance[c] + sol.covariance[c].T)
+            g_s = (s2 * (torch.linalg.inv(cv) - bx.prior_precision[c]))[:ks, :ks]
+        else:
+            ps2 = (bx.prior_variance[:ks, c] * lam / s2).clamp_min(1e-300)
+            b = bx.whitened_basis[c][:ks] / ps2[:, None] \
+                * bx.whitened_eigenvalues[c].clamp_min(0.0).sqrt()[None, :]  # G_s = B Bᵀ
+            g_s = b @ b.T
+        sens = ((y @ g_s) * y).sum(-1).cpu()
         j = int(torch.argmin(sens))
         inten[c] = math.sqrt(q * s2 / max(float(sens[j]), 1e-300))
         where[c] = dirs[j].cpu()

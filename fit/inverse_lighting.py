@@ -52,6 +52,7 @@ from .exact_design import (
 )
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
+from .nonstationary import NONSTATIONARY_FILL, solve_nonstationary
 from .sh import band_of_index, real_sh
 from .solve import (
     RATIO_LIMIT,
@@ -1027,15 +1028,28 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                          f"by Parseval, tau2 the lighting's power per SH coefficient above L by "
                          f"maximum likelihood on the residual); it exceeds the noise on {dom} "
                          f"of {w.shape[0]} samples")}
+    iso = full  # the power-law prior's solution: adequacy, rule 5 and ε are about the data
+    envelope = None
+    if exact and r is not None and (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp and \
+            (truncation is None or truncation["quantile_ratio"] <= 1.0):
+        # a saturated solve (one view: K up to N): the prior sets most of the reported bands'
+        # variance, and a stationary prior spreads it where the probe is dark; the envelope
+        # prior (fit.nonstationary, docs/fitting.md "A prior whose variance follows the
+        # lighting") where its evidence is higher. Not where the truncation noise dominates
+        # the median sample (Grace, Phong s = 256: every sample, 5900x the noise): the
+        # envelope of a solution the data barely hold moved L00 by 20% (6 s.d.)
+        ns, envelope = solve_nonstationary(full)
+        if ns is not None:
+            full = ns
     filt = _band_filter(spec, lint, design)
-    eps = noise_level(full)
+    eps = noise_level(iso)
     prediction = _prediction(spec, eps)
     # rule 4 weakens the prior only as far as the data allow (band_prior_weakening); rule 5:
     # the brightest point source no sample would see (docs/fitting.md, "One view of a glossy
     # sphere")
     kappa = band_prior_weakening(full)
     weak = weak_prior_variance(full, kappa)
-    hid, hid_dir = hidden_source(full)
+    hid, hid_dir = hidden_source(iso)
     rows_all = band_statistics_bayes(full, filt, eps, weak, hid)[0]
     suggested = suggest_lmax(rows_all)
     if auto:
@@ -1044,10 +1058,10 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     sol = restrict(full, k)
     rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k],
                                                       hid)
-    if first is not None and first[0] is full:  # same solution, same data and weights
+    if first is not None and first[0] is iso:  # same solution, same data and weights
         adequacy = first[1]
     else:
-        adequacy = model_adequacy(full, b_scan, scan(w), noise_known=noise_known, view=view)
+        adequacy = model_adequacy(iso, b_scan, scan(w), noise_known=noise_known, view=view)
     adequacy["truncation"] = truncation
     if truncation is not None:
         adequacy["verdict"] += (f" (with truncation noise: the lighting above L = {lint} that "
@@ -1100,7 +1114,10 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     fit.prior = {"slope": bx.slope.tolist(), "scale": bx.prior_scale.tolist(),
                  "noise_scale": bx.noise_scale.tolist(),
                  "log_evidence": bx.log_evidence.tolist(),
-                 "form": "Var(L_lm) = scale * (l+1)^-slope",
+                 "form": "Var(L_lm) = scale * (l+1)^-slope" if full is iso else
+                         "Cov(L_lm, L_l'm') = scale * integral of h Y_lm Y_l'm' (envelope h: "
+                         "the power-law fit's mean squared, floored; fit.nonstationary)",
+                 "envelope": envelope,
                  "robustness_weakening": [[float(v) for v in kappa[full.band == l].max(0).values]
                                           for l in range(int(full.band.max()) + 1)],
                  "hidden_source": {"intensity": hid.tolist(), "direction": hid_dir.tolist(),

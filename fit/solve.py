@@ -431,6 +431,12 @@ class BayesExtras:
     #: :func:`restrict`, so any prior scale's posterior variances cost O(K²))
     whitened_basis: torch.Tensor | None = None
     whitened_eigenvalues: torch.Tensor | None = None
+    #: ``(C, K, K)`` a full prior covariance (and, for the internal solution, its inverse) when
+    #: the prior is not the diagonal power law: the envelope prior of
+    #: :func:`brdfcap.fit.nonstationary.solve_nonstationary`. ``None``: diagonal, as
+    #: ``prior_variance``. The whitened basis is then ``S V`` (``M = S Sᵀ``), not ``P^{-1/2} U``.
+    prior_covariance: torch.Tensor | None = None
+    prior_precision: torch.Tensor | None = None
 
 
 #: From this many live columns up, the weighted Gram (:class:`_GramSum`) is formed as the lower
@@ -962,5 +968,8 @@ def restrict(sol: LinearSolution, k: int) -> LinearSolution:
             split_covariance=None if bx.split_covariance is None
             else bx.split_covariance[:, :, :k, :k],
             whitened_basis=None if bx.whitened_basis is None else bx.whitened_basis[:, :k],
-            whitened_eigenvalues=bx.whitened_eigenvalues)
+            whitened_eigenvalues=bx.whitened_eigenvalues,
+            # the marginal prior of a block is its block (its precision is not: not kept)
+            prior_covariance=None if bx.prior_covariance is None
+            else bx.prior_covariance[:, :k, :k])
     return out
