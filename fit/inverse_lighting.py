@@ -101,6 +101,9 @@ TRUNCATION_CUT_EXPONENTS = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0)
 LEVERAGE_MAX = 0.9
 #: Estimate τ² from the residual corrected for the leverage of each sample (:func:`leverage`).
 TRUNCATION_LEVERAGE = True
+#: Grid of ``κ``, the share of the truncation the solved bands absorb as they absorb white
+#: noise (:func:`truncation_scale`); chosen with ``α`` by maximum likelihood.
+TRUNCATION_ABSORBED = (0.0, 0.5, 1.0)
 TRUNCATION_QUANTILE = 0.5
 TRUNCATION_LMAX_CAP = 40
 
@@ -643,45 +646,51 @@ def _normal_ll(r2: torch.Tensor, v: torch.Tensor) -> float:
 
 def truncation_scale(residual: torch.Tensor, variance: torch.Tensor, t: torch.Tensor,
                      noise_known: bool = True, cut: torch.Tensor | None = None,
-                     hat: torch.Tensor | None = None,
-                     exponents: tuple = (0.0,)) -> tuple[torch.Tensor, torch.Tensor, float]:
-    r"""Per channel ``(τ², s)`` and the cut exponent ``α``: the truncation-noise model, by ML.
+                     hat: torch.Tensor | None = None, exponents: tuple = (0.0,),
+                     absorbed: tuple = (0.0,)) -> tuple[torch.Tensor, torch.Tensor, float, float]:
+    r"""Per channel ``(τ², s)``, the cut exponent ``α`` and the absorbed share ``κ``, by ML.
 
-    Likelihood of each residual ``r_p ~ N(0, (1 − h_p)(s var_p + τ² t_p g_p))``, ``t_p`` from
-    :func:`truncation_power`, ``g_p = (q_p/q̃)^α`` from the sample's cut share ``q_p`` (``cut``;
-    ``g = 1`` without it) and ``h_p`` its leverage (``hat``, :func:`leverage`; 0 without it):
-    ``τ²`` is the lighting's power per SH coefficient above the internal band at the median
-    cut share, ``α`` how much more of it the kernels the horizon cuts pass (one ``α`` for all
-    channels — the cut is the kernel's, not the lighting's — from ``exponents``, the one of
-    highest likelihood summed over channels; ``α = 0`` is a flat tail seen alike by every
-    kernel). ``s = 1`` with a noise model; without one ``s`` and ``τ²`` alternate. Returns
-    ``(τ², s, α)``; the truncation variance of sample ``p`` is ``τ² t_p g_p``
-    (:func:`cut_weight`).
+    The truncation-noise model: sample ``p``'s variance is ``s var_p + τ² t_p g_p`` (``t_p``
+    from :func:`truncation_power`, ``g_p = (q_p/q̃)^α`` from its cut share ``q_p``, ``cut``;
+    ``g = 1`` without it). ``τ²`` is the lighting's power per SH coefficient above the internal
+    band at the median cut share, ``α`` how much more of it the kernels the horizon cuts
+    pass. Its residual is fitted as ``r_p ~ N(0, (1 − h_p) s var_p + (1 − κ h_p) τ² t_p g_p)``
+    with ``h_p`` the sample's leverage (``hat``, :func:`leverage`; 0 without it): the fitted
+    bands absorb the share ``h_p`` of white noise (a restricted-likelihood correction,
+    Patterson & Thompson 1971), and of the truncation the share ``κ h_p`` — ``κ = 0`` when the
+    lighting above ``L`` is orthogonal to the solved bands (an uncut lobe's tail over a
+    well-covered sphere), ``κ = 1`` when it is as absorbable as white noise. One ``α`` and one
+    ``κ`` for all channels (they are the kernels', not the lighting's), from the grids
+    ``exponents`` and ``absorbed``, the pair of highest likelihood summed over channels
+    (``α = κ = 0``: the flat tail of ``docs/fitting.md``, "Truncation noise"). ``s = 1`` with a
+    noise model; without one ``s`` and ``τ²`` alternate.
     """
     nch = residual.shape[1]
     best = None
-    for alpha in exponents if cut is not None else (0.0,):
-        g = cut_weight(cut, alpha) if cut is not None else \
-            torch.ones(t.shape[0], dtype=torch.float64, device=t.device)
-        tau = torch.zeros(nch, dtype=torch.float64)
-        scl = torch.ones(nch, dtype=torch.float64)
-        ll = 0.0
-        for c in range(nch):
-            m = torch.isfinite(variance[:, c]) & (variance[:, c] > 0) & \
-                torch.isfinite(residual[:, c])
-            r2, v, tc = residual[m, c] ** 2, variance[m, c], t[m, c] * g[m]
-            if hat is not None:
-                r2 = r2 / (1.0 - hat[m, c].clamp(max=LEVERAGE_MAX))
-            if not r2.numel():
-                continue
-            for _ in range(1 if noise_known else 4):
-                tau[c] = _ml_scale(r2, scl[c] * v, tc)
-                if not noise_known:
-                    scl[c] = max(_ml_scale(r2, tau[c] * tc, v), 1e-300)
-            ll += _normal_ll(r2, scl[c] * v + tau[c] * tc)
-        if best is None or ll > best[0] + 1e-9 * abs(best[0]):
-            best = (ll, tau, scl, float(alpha))
-    return best[1], best[2], best[3]
+    for kappa in absorbed if hat is not None else (0.0,):
+        for alpha in exponents if cut is not None else (0.0,):
+            g = cut_weight(cut, alpha) if cut is not None else \
+                torch.ones(t.shape[0], dtype=torch.float64, device=t.device)
+            tau = torch.zeros(nch, dtype=torch.float64)
+            scl = torch.ones(nch, dtype=torch.float64)
+            ll = 0.0
+            for c in range(nch):
+                m = torch.isfinite(variance[:, c]) & (variance[:, c] > 0) & \
+                    torch.isfinite(residual[:, c])
+                if not bool(m.any()):
+                    continue
+                r2, v, tc = residual[m, c] ** 2, variance[m, c], t[m, c] * g[m]
+                if hat is not None:
+                    h = hat[m, c].clamp(max=LEVERAGE_MAX)
+                    v, tc = (1.0 - h) * v, (1.0 - kappa * h) * tc
+                for _ in range(1 if noise_known else 4):
+                    tau[c] = _ml_scale(r2, scl[c] * v, tc)
+                    if not noise_known:
+                        scl[c] = max(_ml_scale(r2, tau[c] * tc, v), 1e-300)
+                ll += _normal_ll(r2, scl[c] * v + tau[c] * tc)
+            if best is None or ll > best[0] + 1e-9 * abs(best[0]):
+                best = (ll, tau, scl, float(alpha), float(kappa))
+    return best[1:]
 
 
 def cut_share(t: torch.Tensor, power: torch.Tensor) -> torch.Tensor:
@@ -997,10 +1006,13 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         def estimate(weights):
             """``(τ², s, α, t_eff)`` by ML on the residual of ``full`` (solved with ``weights``)."""
             hat = leverage(design_f, cscale, full, weights) if TRUNCATION_LEVERAGE else None
-            tau_, scl_, alpha_ = truncation_scale(residual(), var0, t_raw, noise_known, cut=q,
-                                                  hat=hat, exponents=TRUNCATION_CUT_EXPONENTS)
+            tau_, scl_, alpha_, kappa_ = truncation_scale(
+                residual(), var0, t_raw, noise_known, cut=q, hat=hat,
+                exponents=TRUNCATION_CUT_EXPONENTS, absorbed=TRUNCATION_ABSORBED)
+            fit_info["alpha"], fit_info["kappa"] = alpha_, kappa_
             return tau_, scl_, alpha_, t_raw * cut_weight(q, alpha_)[:, None]
 
+        fit_info = {}
         pw = kernel_power(spec, n, r, lint)
         t_raw = truncation_power(design_f, cscale, pw, chunk)
         q = cut_share(t_raw, pw)
@@ -1053,7 +1065,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             w = w_t
             dom = int((ratio > 1.0).sum())
             truncation = {
-                "tau2": tau.tolist(), "cut_exponent": alpha, "internal_lmax": lint,
+                "tau2": tau.tolist(), "cut_exponent": alpha,
+                "absorbed_share": fit_info["kappa"], "internal_lmax": lint,
                 "samples_dominated": dom,
                 "quantile_ratio": share, "max_variance_ratio": float(ratio.max()),
                 "text": (f"noise model plus the lighting above L = {lint} passed by each "

@@ -82,17 +82,16 @@ def test_glossy_grace_cell_adequate_and_covered(request):
     assert c.error_ok and c.coverage_ok and c.lstar_ok, table
 
 
-def _synthetic(alpha, tau2, hat=None, n=20000, seed=3):
-    """Residuals ``r_p ~ N(0, (1 − h_p)(v_p + τ² t_p (q_p/q̃)^α))`` with a known model."""
+def _synthetic(alpha, tau2, hat=None, kappa=1.0, n=20000, seed=3):
+    """Residuals ``r_p ~ N(0, (1 − h_p) v_p + (1 − κ h_p) τ² t_p (q_p/q̃)^α)``, a known model."""
     g = torch.Generator().manual_seed(seed)
     u = torch.rand(n, generator=g, dtype=torch.float64)
     q = 10.0 ** (-6.0 + 4.0 * u)  # cut shares over four decades, as toward a rim
     t = (0.5 + torch.rand(n, 2, generator=g, dtype=torch.float64)) * 2.0
     v = torch.full((n, 2), 1.0, dtype=torch.float64)
     gw = (q / q.median()) ** alpha
-    var = v + torch.tensor(tau2, dtype=torch.float64)[None, :] * t * gw[:, None]
-    if hat is not None:
-        var = var * (1.0 - hat)
+    trunc = torch.tensor(tau2, dtype=torch.float64)[None, :] * t * gw[:, None]
+    var = v + trunc if hat is None else (1.0 - hat) * v + (1.0 - kappa * hat) * trunc
     r = var.sqrt() * torch.randn(n, 2, generator=g, dtype=torch.float64)
     return r, v, t, q
 
@@ -101,33 +100,40 @@ def _synthetic(alpha, tau2, hat=None, n=20000, seed=3):
 def test_truncation_scale_recovers_known_cut_exponent_and_scale(alpha):
     """Per-channel τ² and the shared cut exponent α of ``τ² t_p (q_p/q̃)^α`` by maximum
     likelihood recover the values the synthetic residuals were drawn with (τ² within 10%,
-    α on the grid exactly); a model without the cut (α = 0 only) misstates the rim."""
+    α on the grid exactly); a model without the cut (α = 0 only) misstates the rim.
+    """
     from brdfcap.fit.inverse_lighting import TRUNCATION_CUT_EXPONENTS, truncation_scale
 
     tau2 = [0.3, 0.05]
     r, v, t, q = _synthetic(alpha, tau2)
-    tau, scl, a = truncation_scale(r, v, t, True, cut=q, exponents=TRUNCATION_CUT_EXPONENTS)
+    tau, scl, a, _ = truncation_scale(r, v, t, True, cut=q, exponents=TRUNCATION_CUT_EXPONENTS)
     assert a == alpha
     assert tau.tolist() == pytest.approx(tau2, rel=0.1)
     assert scl.tolist() == [1.0, 1.0]
     if alpha:
-        flat, _, a0 = truncation_scale(r, v, t, True)
+        flat, _, a0, _ = truncation_scale(r, v, t, True)
         assert a0 == 0.0
         assert abs(float(flat[0]) / tau2[0] - 1.0) > 0.2  # the flat tail mixes rim and interior
 
 
-def test_truncation_scale_leverage_correction():
-    """Residuals shrunk by the fit's leverage (``E r² = (1 − h) v``): τ² from the raw residual
-    comes out low; with ``hat`` (the restricted-likelihood correction) it is recovered."""
-    from brdfcap.fit.inverse_lighting import truncation_scale
+@pytest.mark.parametrize("kappa", [0.0, 1.0])
+def test_truncation_scale_leverage_correction(kappa):
+    """Residuals shrunk by the fit's leverage: the noise always (``(1 − h) v``), the truncation
+    by ``κ h`` (κ = 1: absorbed like white noise; κ = 0: orthogonal to the solved bands). τ²
+    from the raw residual comes out low (κ = 1) or is confounded with the shrunk noise; with
+    ``hat`` and the grid of κ the known τ² and κ are recovered.
+    """
+    from brdfcap.fit.inverse_lighting import TRUNCATION_ABSORBED, truncation_scale
 
     n = 20000
     hat = torch.linspace(0.0, 0.6, n, dtype=torch.float64)[:, None].expand(n, 2)
-    r, v, t, _ = _synthetic(0.0, [0.3, 0.05], hat=hat)
-    raw, _, _ = truncation_scale(r, v, t, True)
-    cor, _, _ = truncation_scale(r, v, t, True, hat=hat)
+    r, v, t, _ = _synthetic(0.0, [0.3, 0.05], hat=hat, kappa=kappa)
+    raw, _, _, _ = truncation_scale(r, v, t, True)
+    cor, _, _, k = truncation_scale(r, v, t, True, hat=hat, absorbed=TRUNCATION_ABSORBED)
+    assert k == kappa
     assert cor.tolist() == pytest.approx([0.3, 0.05], rel=0.15)
-    assert bool((raw < 0.75 * cor).all())
+    if kappa:
+        assert bool((raw < 0.75 * cor).all())
 
 
 @pytest.mark.usefixtures("one_thread")
