@@ -104,6 +104,12 @@ TRUNCATION_LEVERAGE = True
 #: Grid of ``κ``, the share of the truncation the solved bands absorb as they absorb white
 #: noise (:func:`truncation_scale`); chosen with ``α`` by maximum likelihood.
 TRUNCATION_ABSORBED = (0.0, 0.5, 1.0)
+#: The cut exponent, the absorbed share and the leverage correction are estimated only when the
+#: residual keeps at least this share of the samples' degrees of freedom, ``Σ (1 − h_p) / N``
+#: (six views of 812 samples at L = 40: 0.78); a fit near saturation (one view at the
+#: ``K ≤ N`` cap: ``K = 784`` for 812 samples) leaves too few for three more parameters, and the
+#: flat tail (``α = κ = 0``, no correction) is kept.
+TRUNCATION_DOF_MIN = 0.5
 TRUNCATION_QUANTILE = 0.5
 TRUNCATION_LMAX_CAP = 40
 
@@ -1006,9 +1012,16 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         def estimate(weights):
             """``(τ², s, α, t_eff)`` by ML on the residual of ``full`` (solved with ``weights``)."""
             hat = leverage(design_f, cscale, full, weights) if TRUNCATION_LEVERAGE else None
-            tau_, scl_, alpha_, kappa_ = truncation_scale(
-                residual(), var0, t_raw, noise_known, cut=q, hat=hat,
-                exponents=TRUNCATION_CUT_EXPONENTS, absorbed=TRUNCATION_ABSORBED)
+            dof = 1.0 if hat is None else float((1.0 - hat[used]).sum(0).min()) / \
+                max(int(used.sum()), 1)
+            if dof >= TRUNCATION_DOF_MIN:
+                tau_, scl_, alpha_, kappa_ = truncation_scale(
+                    residual(), var0, t_raw, noise_known, cut=q, hat=hat,
+                    exponents=TRUNCATION_CUT_EXPONENTS, absorbed=TRUNCATION_ABSORBED)
+            else:  # near saturation: the flat tail of docs/fitting.md, "Truncation noise"
+                tau_, scl_, alpha_, kappa_ = truncation_scale(residual(), var0, t_raw,
+                                                              noise_known)
+            fit_info["dof"] = dof
             fit_info["alpha"], fit_info["kappa"] = alpha_, kappa_
             return tau_, scl_, alpha_, t_raw * cut_weight(q, alpha_)[:, None]
 
@@ -1066,7 +1079,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             dom = int((ratio > 1.0).sum())
             truncation = {
                 "tau2": tau.tolist(), "cut_exponent": alpha,
-                "absorbed_share": fit_info["kappa"], "internal_lmax": lint,
+                "absorbed_share": fit_info["kappa"], "residual_dof_share": fit_info["dof"],
+                "internal_lmax": lint,
                 "samples_dominated": dom,
                 "quantile_ratio": share, "max_variance_ratio": float(ratio.max()),
                 "text": (f"noise model plus the lighting above L = {lint} passed by each "
