@@ -68,7 +68,9 @@ __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance",
            "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
            "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
            "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES",
-           "resolved_tail_power"]
+           "resolved_tail_power", "leverage", "cut_share", "cut_weight", "LEVERAGE_MAX",
+           "TRUNCATION_CUT_EXPONENTS", "TRUNCATION_ABSORBED", "TRUNCATION_LEVERAGE",
+           "TRUNCATION_DOF_MIN"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
