@@ -70,7 +70,9 @@ __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance",
            "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
            "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
            "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES",
-           "resolved_tail_power", "REPORTED_SHARE_ABS", "REPORTED_SHARE_RATIO"]
+           "resolved_tail_power", "REPORTED_SHARE_ABS", "REPORTED_SHARE_RATIO", "leverage",
+           "cut_share", "cut_weight", "LEVERAGE_MAX", "TRUNCATION_CUT_EXPONENTS",
+           "TRUNCATION_ABSORBED", "TRUNCATION_LEVERAGE", "TRUNCATION_DOF_MIN"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -93,6 +95,25 @@ TRUNCATION_TOL = 0.25
 #: (the bands above L are nearly orthogonal to them over a well-covered sphere), so it is kept
 #: to where no finite L removes it — the rim, where the horizon cuts the lobe.
 TRUNCATION_REL = 0.1
+#: Exponents ``α`` of the truncation variance's dependence on each sample's cut share,
+#: ``τ² t_p (q_p / q̃)^α`` (``q_p = t_p / ∫k_p²``, ``q̃`` its median; :func:`truncation_scale`):
+#: ``α = 0`` is the flat tail, larger ``α`` puts more of the lighting above ``L`` on the kernels
+#: whose lobe the horizon cuts. Chosen per fit by maximum likelihood over this grid.
+TRUNCATION_CUT_EXPONENTS = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0)
+#: Leverage at most this in the restricted-likelihood correction of the residual
+#: (:func:`leverage`): a sample the fit reproduces exactly says nothing about its variance.
+LEVERAGE_MAX = 0.9
+#: Estimate τ² from the residual corrected for the leverage of each sample (:func:`leverage`).
+TRUNCATION_LEVERAGE = True
+#: Grid of ``κ``, the share of the truncation the solved bands absorb as they absorb white
+#: noise (:func:`truncation_scale`); chosen with ``α`` by maximum likelihood.
+TRUNCATION_ABSORBED = (0.0, 0.5, 1.0)
+#: The cut exponent, the absorbed share and the leverage correction are estimated only when the
+#: residual keeps at least this share of the samples' degrees of freedom, ``Σ (1 − h_p) / N``
+#: (six views of 812 samples at L = 40: 0.78); a fit near saturation (one view at the
+#: ``K ≤ N`` cap: ``K = 784`` for 812 samples) leaves too few for three more parameters, and the
+#: flat tail (``α = κ = 0``, no correction) is kept.
+TRUNCATION_DOF_MIN = 0.5
 TRUNCATION_QUANTILE = 0.5
 TRUNCATION_LMAX_CAP = 40
 #: The adequacy verdict says what the reported bands alone leave (:func:`reported_bands_share`)
@@ -603,30 +624,111 @@ def _ml_scale(r2: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> float:
     return float(fine[int(torch.argmax(ll(fine)))])
 
 
-def truncation_scale(residual: torch.Tensor, variance: torch.Tensor, t: torch.Tensor,
-                     noise_known: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
-    r"""Per channel ``(τ², s)``: the truncation-noise level and the noise scale, by ML.
+def leverage(design, scale: torch.Tensor | None, sol, w: torch.Tensor,
+             chunk: int = 4096) -> torch.Tensor:
+    r"""``(N, C)`` diagonal of the hat matrix ``h_p = w_p a_pᵀ Σ a_p / σ²`` of a Bayesian solve.
 
-    Likelihood of each residual ``r_p ~ N(0, s var_p + τ² t_p)`` (``t_p`` from
-    :func:`truncation_power`): ``τ²`` is the lighting's power per SH coefficient above the
-    internal band, taken flat there (a texel probe's spectrum is; a falling one makes the term
-    conservative), maximised on the residual of the current fit (a profile, type-II-like
-    estimate). ``s = 1`` with a noise model; without one ``s`` and ``τ²`` alternate.
+    ``Σ = σ² (AᵀWA + λP)⁻¹`` is the posterior covariance (``sol.covariance``, noise scale
+    ``σ²`` included), ``a_p`` sample ``p``'s design row (times the channel scale), ``w`` the
+    weights of that solve. ``E[r_p²] ≈ (1 − h_p) v_p`` for a residual of variance ``v_p``
+    (the fitted coefficients absorb ``h_p`` of it; Cook & Weisberg 1982, §2.2, for the
+    regularised hat matrix Hastie & Tibshirani 1990, §3.8): the correction a restricted
+    (REML-type, Patterson & Thompson 1971) estimate of a variance component makes.
+    """
+    cov = sol.covariance
+    s2 = sol.bayes.noise_scale.to(torch.float64)
+    n, nch = w.shape
+    out = torch.zeros(n, nch, dtype=torch.float64, device=w.device)
+    if cov is None:
+        return out
+    k = cov.shape[-1]
+    for s in range(0, n, chunk):
+        e = min(s + chunk, n)
+        a = design(s, e).to(torch.float64)[..., :k]
+        for c in range(nch):
+            ac = a if a.ndim == 2 else a[:, c]
+            if a.ndim == 2 and scale is not None:
+                ac = ac * float(scale[c])
+            q = ((ac @ cov[c].to(ac)) * ac).sum(-1)
+            out[s:e, c] = w[s:e, c] * q / float(s2[c])
+    return out.clamp(0.0, 1.0)
+
+
+def _normal_ll(r2: torch.Tensor, v: torch.Tensor) -> float:
+    """``Σ −½ [log v + r²/v]``."""
+    return float(-0.5 * (torch.log(v) + r2 / v).sum())
+
+
+def truncation_scale(residual: torch.Tensor, variance: torch.Tensor, t: torch.Tensor,
+                     noise_known: bool = True, cut: torch.Tensor | None = None,
+                     hat: torch.Tensor | None = None, exponents: tuple = (0.0,),
+                     absorbed: tuple = (0.0,)) -> tuple[torch.Tensor, torch.Tensor, float, float]:
+    r"""Per channel ``(τ², s)``, the cut exponent ``α`` and the absorbed share ``κ``, by ML.
+
+    The truncation-noise model: sample ``p``'s variance is ``s var_p + τ² t_p g_p`` (``t_p``
+    from :func:`truncation_power`, ``g_p = (q_p/q̃)^α`` from its cut share ``q_p``, ``cut``;
+    ``g = 1`` without it). ``τ²`` is the lighting's power per SH coefficient above the internal
+    band at the median cut share, ``α`` how much more of it the kernels the horizon cuts
+    pass. Its residual is fitted as ``r_p ~ N(0, (1 − h_p) s var_p + (1 − κ h_p) τ² t_p g_p)``
+    with ``h_p`` the sample's leverage (``hat``, :func:`leverage`; 0 without it): the fitted
+    bands absorb the share ``h_p`` of white noise (a restricted-likelihood correction,
+    Patterson & Thompson 1971), and of the truncation the share ``κ h_p`` — ``κ = 0`` when the
+    lighting above ``L`` is orthogonal to the solved bands (an uncut lobe's tail over a
+    well-covered sphere), ``κ = 1`` when it is as absorbable as white noise. One ``α`` and one
+    ``κ`` for all channels (they are the kernels', not the lighting's), from the grids
+    ``exponents`` and ``absorbed``, the pair of highest likelihood summed over channels
+    (``α = κ = 0``: the flat tail of ``docs/fitting.md``, "Truncation noise"). ``s = 1`` with a
+    noise model; without one ``s`` and ``τ²`` alternate.
     """
     nch = residual.shape[1]
-    tau = torch.zeros(nch, dtype=torch.float64)
-    scl = torch.ones(nch, dtype=torch.float64)
-    for c in range(nch):
-        m = torch.isfinite(variance[:, c]) & (variance[:, c] > 0) & \
-            torch.isfinite(residual[:, c])
-        r2, v, tc = residual[m, c] ** 2, variance[m, c], t[m, c]
-        if not r2.numel():
-            continue
-        for _ in range(1 if noise_known else 4):
-            tau[c] = _ml_scale(r2, scl[c] * v, tc)
-            if not noise_known:
-                scl[c] = max(_ml_scale(r2, tau[c] * tc, v), 1e-300)
-    return tau, scl
+    best = None
+    for kappa in absorbed if hat is not None else (0.0,):
+        for alpha in exponents if cut is not None else (0.0,):
+            g = cut_weight(cut, alpha) if cut is not None else \
+                torch.ones(t.shape[0], dtype=torch.float64, device=t.device)
+            tau = torch.zeros(nch, dtype=torch.float64)
+            scl = torch.ones(nch, dtype=torch.float64)
+            ll = 0.0
+            for c in range(nch):
+                m = torch.isfinite(variance[:, c]) & (variance[:, c] > 0) & \
+                    torch.isfinite(residual[:, c])
+                if not bool(m.any()):
+                    continue
+                r2, v, tc = residual[m, c] ** 2, variance[m, c], t[m, c] * g[m]
+                if hat is not None:
+                    h = hat[m, c].clamp(max=LEVERAGE_MAX)
+                    v, tc = (1.0 - h) * v, (1.0 - kappa * h) * tc
+                for _ in range(1 if noise_known else 4):
+                    tau[c] = _ml_scale(r2, scl[c] * v, tc)
+                    if not noise_known:
+                        scl[c] = max(_ml_scale(r2, tau[c] * tc, v), 1e-300)
+                ll += _normal_ll(r2, scl[c] * v + tau[c] * tc)
+            if best is None or ll > best[0] + 1e-9 * abs(best[0]):
+                best = (ll, tau, scl, float(alpha), float(kappa))
+    return best[1:]
+
+
+def cut_share(t: torch.Tensor, power: torch.Tensor) -> torch.Tensor:
+    r"""``(N,)`` share of each sample's kernel power above ``L``: ``q_p = max_c t_{p,c}/∫k²``.
+
+    Uncut lobes pass only their band-limited tail (R&H's addition theorem; tiny at the
+    internal band), lobes the horizon cuts (``n·ωi > 0``) an algebraic tail that no ``L``
+    removes: ``q_p`` grows by decades toward the rim, where and how fast depending on the
+    model's lobe (Grace, L = 40: Beckmann σ = 0.4 from 1e-6 at normal exitance to 2e-4 at
+    grazing; ``docs/fitting.md``, "Where the horizon cuts the lobe").
+    """
+    return (t / power.clamp_min(1e-300)).amax(-1).clamp_min(0.0)
+
+
+def cut_weight(cut: torch.Tensor, alpha: float) -> torch.Tensor:
+    """``(q_p / q̃)^α`` (``q̃`` the median positive share); ones for ``α = 0`` or no shares."""
+    if alpha == 0.0:
+        return torch.ones_like(cut)
+    pos = cut[cut > 0]
+    if not pos.numel():
+        return torch.ones_like(cut)
+    ref = float(pos.median())
+    return (cut.clamp_min(1e-12 * ref) / ref) ** alpha
 
 
 def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
@@ -974,8 +1076,27 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             ratio_ = (tau_[None, :] * t * w / scl[None, :]).amax(-1)
             return ratio_, float(torch.quantile(ratio_[used], TRUNCATION_QUANTILE))
 
-        t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
-        tau, scl = truncation_scale(residual(), var0, t, noise_known)
+        def estimate(weights):
+            """``(τ², s, α, t_eff)`` by ML on the residual of ``full`` (solved with ``weights``)."""
+            hat = leverage(design_f, cscale, full, weights) if TRUNCATION_LEVERAGE else None
+            dof = 1.0 if hat is None else float((1.0 - hat[used]).sum(0).min()) / \
+                max(int(used.sum()), 1)
+            if dof >= TRUNCATION_DOF_MIN:
+                tau_, scl_, alpha_, kappa_ = truncation_scale(
+                    residual(), var0, t_raw, noise_known, cut=q, hat=hat,
+                    exponents=TRUNCATION_CUT_EXPONENTS, absorbed=TRUNCATION_ABSORBED)
+            else:  # near saturation: the flat tail of docs/fitting.md, "Truncation noise"
+                tau_, scl_, alpha_, kappa_ = truncation_scale(residual(), var0, t_raw,
+                                                              noise_known)
+            fit_info["dof"] = dof
+            fit_info["alpha"], fit_info["kappa"] = alpha_, kappa_
+            return tau_, scl_, alpha_, t_raw * cut_weight(q, alpha_)[:, None]
+
+        fit_info = {}
+        pw = kernel_power(spec, n, r, lint)
+        t_raw = truncation_power(design_f, cscale, pw, chunk)
+        q = cut_share(t_raw, pw)
+        tau, scl, alpha, t = estimate(w)
         # how far to solve: the lighting above L at least as strong as the last band the data
         # resolve (a flat tail). The residual cannot show what the solved bands absorbed: one
         # view of Beckmann σ = 0.4 under Grace, L = 10: white residual, τ² by ML 0, while the
@@ -996,7 +1117,10 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             cands = [lint]
             band = band_of_index(lint).to(n.device)
             design_f, _ = lighting_design(spec, n, r, lint, tables, keep, design)
-            t = truncation_power(design_f, cscale, kernel_power(spec, n, r, lint), chunk)
+            pw = kernel_power(spec, n, r, lint)
+            t_raw = truncation_power(design_f, cscale, pw, chunk)
+            q = cut_share(t_raw, pw)
+            t = t_raw * cut_weight(q, alpha)[:, None]
         w_t = w
         for it in range(TRUNCATION_ITERATIONS):
             if not bool((tau[None, :] * t * w > 1e-3).any()):
@@ -1006,7 +1130,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             full = solve_weighted(w_t, lint, src + " + truncation noise")
             if it == TRUNCATION_ITERATIONS - 1:
                 break
-            new, scl = truncation_scale(residual(), var0, t, noise_known)
+            new, scl, alpha, t = estimate(w_t)
             done = bool(((new - tau).abs() <= TRUNCATION_TOL * tau.clamp_min(1e-300)).all())
             tau = new
             if done:
@@ -1021,7 +1145,10 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
             w = w_t
             dom = int((ratio > 1.0).sum())
             truncation = {
-                "tau2": tau.tolist(), "internal_lmax": lint, "samples_dominated": dom,
+                "tau2": tau.tolist(), "cut_exponent": alpha,
+                "absorbed_share": fit_info["kappa"], "residual_dof_share": fit_info["dof"],
+                "internal_lmax": lint,
+                "samples_dominated": dom,
                 "quantile_ratio": share, "max_variance_ratio": float(ratio.max()),
                 "text": (f"noise model plus the lighting above L = {lint} passed by each "
                          f"sample's kernel: variance tau2 * t_p (t_p the kernel's power above L "
