@@ -283,20 +283,31 @@ PRIOR_WEAKENING = 10.0
 PRIOR_DOMINATED_RATIO = 2.0
 
 
-def _precision_less_prior(cov: torch.Tensor, prior_variance: torch.Tensor,
-                          fraction: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(P, d)``: the precision ``cov⁻¹`` less ``fraction`` of the prior precision, scaled.
+def _precision_less_prior(cov: torch.Tensor, less: torch.Tensor
+                          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(P, d)``: the precision ``cov⁻¹`` less the prior precision ``less``, scaled.
 
     ``cov`` is scaled to unit diagonal first (``d = diag^{-1/2}``; well scaled for the
     inversions), so ``P`` is in those units: the covariance it stands for is
-    ``P⁻¹ / (d dᵀ)``. Symmetrised. The prior precision is ``diag(1/prior_variance)`` (MacKay
-    1992 eq. 2.13: removing a fraction of it weakens the prior, all of it removes it).
+    ``P⁻¹ / (d dᵀ)``. Symmetrised. ``less`` is in ``cov``'s units: ``(K,)`` for a diagonal
+    prior precision (``fraction / prior_variance``), or ``(K, K)`` for a full one (MacKay 1992
+    eq. 2.13: removing a fraction of the prior precision weakens the prior, all of it removes
+    it).
     """
     cv = 0.5 * (cov + cov.T)
     d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
     prec = torch.linalg.inv(cv * d[:, None] * d[None, :])
-    out = prec - torch.diag(fraction / prior_variance.clamp_min(1e-300) / d ** 2)
+    out = prec - (torch.diag(less / d ** 2) if less.ndim == 1 else less / (d[:, None] * d[None, :]))
     return 0.5 * (out + out.T), d
+
+
+def _inverse_diagonal(prec: torch.Tensor) -> torch.Tensor:
+    """Diagonal of ``prec⁻¹`` (Cholesky; the pseudo-inverse where it is not positive definite)."""
+    try:
+        inv = torch.cholesky_inverse(torch.linalg.cholesky(prec))
+    except torch.linalg.LinAlgError:
+        inv = torch.linalg.pinv(prec, hermitian=True)
+    return torch.diagonal(inv).clamp_min(0.0)
 
 
 def band_data_only_covariance(sol: LinearSolution, sel: torch.Tensor,
@@ -312,18 +323,12 @@ def band_data_only_covariance(sol: LinearSolution, sel: torch.Tensor,
     """
     idx = torch.nonzero(sel).flatten()
     ix = (idx[:, None], idx[None, :])
-    if sol.bayes.prior_covariance is not None:
-        # a full prior (fit.nonstationary): the band's own prior precision is the inverse of
-        # its marginal prior block (the diagonal case's Λ_l when the prior is diagonal)
-        cv = 0.5 * (sol.covariance[c][ix] + sol.covariance[c][ix].T)
-        d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
-        p0 = sol.bayes.prior_covariance[c][ix] * d[:, None] * d[None, :]
-        data = torch.linalg.inv(cv * d[:, None] * d[None, :]) \
-            - torch.linalg.inv(0.5 * (p0 + p0.T))
-        data = 0.5 * (data + data.T)
-    else:
-        data, d = _precision_less_prior(sol.covariance[c][ix],
-                                        sol.bayes.prior_variance[idx, c], 1.0)
+    full = sol.bayes.prior_covariance
+    # a full prior (fit.nonstationary): the band's own prior precision is the inverse of its
+    # marginal prior block (the diagonal case's Λ_l when the prior is diagonal)
+    own = 1.0 / sol.bayes.prior_variance[idx, c].clamp_min(1e-300) if full is None else \
+        torch.linalg.inv(0.5 * (full[c][ix] + full[c][ix].T))
+    data, d = _precision_less_prior(sol.covariance[c][ix], own)
     try:
         ch = torch.linalg.cholesky(data)
     except torch.linalg.LinAlgError:
@@ -443,18 +448,10 @@ def weak_prior_variance(sol: LinearSolution,
         for c in range(sol.covariance.shape[0]):
             kc = (kappa[:, c] if isinstance(kappa, torch.Tensor) else
                   torch.full_like(bx.posterior_variance[:, c], float(kappa))).to(torch.float64)
-            cv = 0.5 * (sol.covariance[c] + sol.covariance[c].T)
-            d = torch.diagonal(cv).clamp_min(1e-300).rsqrt()
-            p0 = bx.prior_precision[c] / (d[:, None] * d[None, :])
             dk = kc.rsqrt()
-            prec = torch.linalg.inv(cv * d[:, None] * d[None, :]) - p0 \
-                + p0 * dk[:, None] * dk[None, :]
-            prec = 0.5 * (prec + prec.T)
-            try:
-                wc = torch.cholesky_inverse(torch.linalg.cholesky(prec))
-            except torch.linalg.LinAlgError:
-                wc = torch.linalg.pinv(prec, hermitian=True)
-            out[:, c] = torch.diagonal(wc).clamp_min(0.0) / d ** 2
+            prec, d = _precision_less_prior(
+                sol.covariance[c], bx.prior_precision[c] * (1.0 - dk[:, None] * dk[None, :]))
+            out[:, c] = _inverse_diagonal(prec) / d ** 2
         return out
     per = isinstance(kappa, torch.Tensor)
     if per and bool((kappa == kappa.max()).all()):
@@ -478,13 +475,9 @@ def weak_prior_variance(sol: LinearSolution,
                                                              device=ch.device), upper=False)
             out[:, c] = s2 * ps2 * (li ** 2).sum(0)  # diag((L Lᵀ)⁻¹) = column norms of L⁻¹
             continue
-        weak, d = _precision_less_prior(sol.covariance[c], bx.prior_variance[:, c],
-                                        1.0 - 1.0 / kc)
-        try:
-            wc = torch.cholesky_inverse(torch.linalg.cholesky(weak))
-        except torch.linalg.LinAlgError:
-            wc = torch.linalg.pinv(weak, hermitian=True)
-        out[:, c] = torch.diagonal(wc).clamp_min(0.0) / d ** 2
+        weak, d = _precision_less_prior(
+            sol.covariance[c], (1.0 - 1.0 / kc) / bx.prior_variance[:, c].clamp_min(1e-300))
+        out[:, c] = _inverse_diagonal(weak) / d ** 2
     return out
 
 

@@ -44,9 +44,10 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
                            "so the coefficients are albedo x lighting"))
     # the residual images and RMS show the model the adequacy verdict judges: the internal
     # solution (bands up to internal_lmax); what the reported bands alone leave is stated
-    pred = internal_prediction(fit, samples.normal, samples.reflected, samples.radiance)
-    share = reported_bands_share(fit, samples.radiance,
-                                 predict_radiance(fit, samples.normal, samples.reflected), pred)
+    reported = predict_radiance(fit, samples.normal, samples.reflected)
+    pred = reported if fit.internal_residual is None else internal_prediction(
+        fit, samples.normal, samples.reflected, samples.radiance)
+    share = reported_bands_share(fit, samples.radiance, reported, pred)
     if share is not None:
         fit.adequacy["reported_bands"] = share
         if share["shown"]:
