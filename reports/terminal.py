@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 
 from .numbers import fmt_num
-from .views import headline, lmax_suggestion
+from .views import headline, lmax_suggestion, simulation_accuracy_note
 
 __all__ = ["terminal_lines", "terminal_record"]
 
@@ -68,15 +68,8 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
            if b.get("mean_z2") is not None and b["l"] not in ill]
     if det:
         z = max(b["max_abs_z"] for b in det)
-        acc = (gt.get("lighting") or {}).get("simulation_accuracy")
-        worst = max(b.get("error_rel_dc", 0.0) for b in det)
-        within = ""
-        if acc is not None and z > 3:  # say why many std. errors may still be no bias
-            within = (f" (errors ≤ {fmt_num(100 * worst, 2)}% of |L00|, "
-                      + ("within" if worst <= acc else "beyond")
-                      + f" the simulation's own accuracy, {fmt_num(100 * acc, 2)}% per pixel)")
         lines.append(f"  vs ground truth: determined lighting bands within {fmt_num(z, 2)} "
-                     f"std. errors{within}")
+                     f"std. errors" + simulation_accuracy_note(gt["lighting"], det, z))
     held = [b for b in ((gt.get("lighting") or {}).get("bands") or []) if "bound_holds" in b]
     if held:
         bad = [str(b["l"]) for b in held if not b["bound_holds"]]

@@ -398,6 +398,21 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
     return out
 
 
+def simulation_accuracy_note(gt_lighting: dict, det: list[dict], zmax: float) -> str:
+    """`` (errors ≤ x% of |L00|, within/beyond the simulation's own accuracy, y% per pixel)``.
+
+    Said where the determined bands are more than 3 std. errors off and the simulator measured
+    its accuracy (:func:`simulation_accuracy`): many std. errors may still be no bias.
+    """
+    acc = gt_lighting.get("simulation_accuracy")
+    if not _is_num(acc) or zmax <= 3:
+        return ""
+    worst = max(b.get("error_rel_dc", 0.0) for b in det)
+    return (f" (errors ≤ {fmt_num(100 * worst, 2)}% of |L00|, "
+            + ("within" if worst <= acc else "beyond")
+            + f" the simulation's own accuracy, {fmt_num(100 * acc, 2)}% per pixel)")
+
+
 def truth_rows(gt: dict, results: dict) -> dict:
     """Format the tables of a ``results["ground_truth"]`` block (bands, coefficients, BRDF)."""
     rows = {"bands": [], "coefficients": [], "brdf": [], "truth": "", "headline": "",
@@ -434,7 +449,8 @@ def truth_rows(gt: dict, results: dict) -> dict:
             lhi = det[-1]["l"]
             rows["headline"] = (f"lighting bands l ≤ {lhi}: mean z² = {fmt_num(z2, 2)} "
                                 f"(about 1 when the fit is unbiased and its standard errors "
-                                f"right), max |z| = {fmt_num(zmax, 2)}")
+                                f"right), max |z| = {fmt_num(zmax, 2)}"
+                                + simulation_accuracy_note(lt, det, zmax))
         for b in lt["bands"]:
             mz2 = b.get("mean_z2")
             rows["bands"].append([str(b["l"]), fmt_num(b["rms_true"], 3),

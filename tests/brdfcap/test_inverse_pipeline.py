@@ -135,6 +135,8 @@ def test_lmax_auto_reports_the_band_the_data_determine(captures, tmp_path):
     assert "Re-rendered\nfrom the fit's internal solution" in html
     # noiseless render: the z-scores are large, the errors inside the simulation's accuracy
     assert "within the simulation's own accuracy" in res.output
+    assert re.search(r"max \|z\| = [\d.]+ \(errors ≤ [\d.]+% of \|L00\|, within the "
+                     r"simulation", html), "first screen: no simulation-accuracy note"
     for args, msg in ((["--problem", "brdf", "--lmax", "auto"],
                        "only problems lighting and auto choose the band from the data"),
                       (["--lmax", "two"], "neither an integer band nor 'auto'")):
