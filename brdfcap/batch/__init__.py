@@ -50,7 +50,14 @@ from brdfcap.core.provenance import (
 from brdfcap.core.provenance import provenance as _provenance
 
 from .discover import Discovery, discover, find_captures
-from .executor import ClusterSpec, check_shared_paths, dask_client, read_cluster_config, run_on_dask
+from .executor import (
+    ClusterSpec,
+    check_shared_paths,
+    dask_client,
+    live_workers,
+    read_cluster_config,
+    run_on_dask,
+)
 from .outdir import LockedError, OutputLock, check_out_dir, clean_stale_tmp
 from .task import CaptureRecord, CaptureTask, run_task, summarize_results
 
@@ -282,7 +289,7 @@ def _run_locked(root: Path, out: Path, found: Discovery, single: bool, run_optio
                 executor = {"kind": "scheduler" if spec.scheduler else (
                     spec.cluster or "local"), "scheduler": client.scheduler.address,
                     "dashboard": client.dashboard_link,
-                    "workers": len(client.scheduler_info().get("workers", {})),
+                    "workers": live_workers(client),
                     "gpu_workers": spec.gpus}
                 if not spec.cluster:
                     check_shared_paths(client, root, found.captures[0], out)

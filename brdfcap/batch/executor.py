@@ -45,6 +45,8 @@ JOBQUEUE_CLUSTERS = {"slurm": "SLURMCluster", "pbs": "PBSCluster", "sge": "SGECl
 STAGE_TOPIC = "brdfcap-stage"
 #: Re-runs of a task that raised (a task records capture errors itself and does not raise).
 TASK_RETRIES = 2
+#: seconds a local cluster's workers get to register before the batch starts (not a capture's time)
+LOCAL_WORKERS_TIMEOUT_S = 120.0
 
 
 @dataclass
@@ -155,7 +157,7 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
     client_log = logging.getLogger("distributed.client")
     old_level = client_log.level
     client_log.setLevel(logging.CRITICAL)
-    cluster = None
+    cluster = client = None
     try:
         if spec.scheduler:
             sfile = _scheduler_file(spec.scheduler)
@@ -189,9 +191,22 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
                     f"'if __name__ == \"__main__\":' around it (workers import the script)"
                 ) from None
             client = Client(cluster)
+            # a started LocalCluster's workers register with the scheduler a little later; until
+            # they do, the path check below reaches no worker and batch.json would count 0
+            try:
+                client.wait_for_workers(spec.jobs, timeout=LOCAL_WORKERS_TIMEOUT_S)
+            except TimeoutError:
+                seen = live_workers(client)
+                raise BrdfcapError(
+                    f"the local Dask cluster started {seen} of {spec.jobs} worker(s) within "
+                    f"{LOCAL_WORKERS_TIMEOUT_S:g} s; lower --jobs or check the machine's load"
+                ) from None
             client.register_plugin(IgnoreSigint())
         client.register_plugin(WarmUp())  # once per worker, also for workers that join later
     except BrdfcapError:
+        if client is not None:
+            with contextlib.suppress(Exception):
+                client.close(timeout=10)
         if cluster is not None:
             cluster.close()
         client_log.setLevel(old_level)
@@ -208,6 +223,16 @@ def dask_client(spec: ClusterSpec, echo: Callable[[str], None] | None = None) ->
             with contextlib.suppress(Exception):
                 cluster.close(timeout=10)
         client_log.setLevel(old_level)
+
+
+def live_workers(client: Any) -> int:
+    """Count the scheduler's workers now, asking the scheduler itself.
+
+    ``client.scheduler_info()`` returns the client's cached identity, which its 2 s refresh
+    (which fetches no workers) can replace between the fetch and the read: a batch once
+    recorded 0 workers that way.
+    """
+    return len(client.nthreads())
 
 
 def _has_dashboard() -> bool:

@@ -373,3 +373,33 @@ def test_ctrl_c_leaves_only_complete_files(reference, tmp_path):
     assert p2.returncode == 0, p2.stderr
     batch = json.loads((out / "batch.json").read_text())
     assert batch["counts"]["skipped"] >= done and batch["counts"]["failed"] == 0
+
+
+def test_local_cluster_workers_are_registered_before_the_batch_starts():
+    """The client a batch gets sees all its local workers, counted by the scheduler itself.
+
+    batch.json once said ``workers: 0`` for a 2-worker run: ``client.scheduler_info()`` returned
+    a cached identity that the client's periodic refresh (which fetches no workers) had replaced.
+    """
+    from brdfcap.batch.executor import ClusterSpec, dask_client, live_workers
+
+    with dask_client(ClusterSpec(jobs=2)) as client:
+        assert live_workers(client) == 2
+        client.sync(client._update_scheduler_info, n_workers=0)  # what the refresh does
+        assert client._scheduler_identity.get("workers", {}) == {}
+        assert live_workers(client) == 2  # not the cache
+
+
+def test_local_workers_that_do_not_register_are_one_line(monkeypatch):
+    from distributed import Client
+
+    from brdfcap.batch import executor
+    from brdfcap.core.errors import BrdfcapError
+
+    def never(self, n_workers, timeout=None):
+        raise TimeoutError(f"only 0/{n_workers} workers arrived after {timeout}")
+
+    monkeypatch.setattr(Client, "wait_for_workers", never)
+    with pytest.raises(BrdfcapError, match=r"started \d of 2 worker\(s\) within .*lower --jobs"):
+        with executor.dask_client(executor.ClusterSpec(jobs=2)):
+            pass
