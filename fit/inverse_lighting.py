@@ -72,7 +72,8 @@ __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance",
            "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES",
            "resolved_tail_power", "REPORTED_SHARE_ABS", "REPORTED_SHARE_RATIO", "leverage",
            "cut_share", "cut_weight", "LEVERAGE_MAX", "TRUNCATION_CUT_EXPONENTS",
-           "TRUNCATION_ABSORBED", "TRUNCATION_LEVERAGE", "TRUNCATION_DOF_MIN"]
+           "TRUNCATION_ABSORBED", "TRUNCATION_LEVERAGE", "TRUNCATION_DOF_MIN",
+           "PILOT_MIN_SAMPLES", "PILOT_SAMPLES"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -116,6 +117,16 @@ TRUNCATION_ABSORBED = (0.0, 0.5, 1.0)
 TRUNCATION_DOF_MIN = 0.5
 TRUNCATION_QUANTILE = 0.5
 TRUNCATION_LMAX_CAP = 40
+#: From this many samples up, a Lambertian-type fit (no specular design) with a noise model
+#: chooses its internal bandwidth on a pilot: every k-th sample in scan order, about
+#: :data:`PILOT_SAMPLES` of them, solved to the filter's bandwidth ``l0`` (:func:`internal_lmax`)
+#: and checked (:func:`~brdfcap.fit.conditioning.model_adequacy`). A residual the model does not
+#: explain sends the full solve straight to ``[l0, truncation_lmax(...)]`` — the candidates the
+#: full solve to ``l0`` would have led to, its excess power per sample being the pilot's
+#: (an intensive quantity) — instead of a full solve to ``l0`` first: 6 views of 256²
+#: (309k samples), lmax 8 under Grace, one solve instead of two (``bench/RESULTS.md``).
+PILOT_MIN_SAMPLES = 2 ** 15
+PILOT_SAMPLES = 2 ** 13
 #: The adequacy verdict says what the reported bands alone leave (:func:`reported_bands_share`)
 #: when their RMS residual exceeds this fraction of the mean signal and this multiple of the
 #: internal solution's.
@@ -467,6 +478,30 @@ def _more_bandwidths(spec: BRDFSpec, sol, l0: int, cap: int, noise_known: bool,
         if bool((excess > TRUNCATION_NOISE_FRACTION).any()):
             return sorted({l0, truncation_lmax(spec, excess, bx.slope, l0, cap, design)})
     return sorted({l0, (l0 + cap) // 2, cap})
+
+
+def _pilot_bandwidths(spec: BRDFSpec, scan0: tuple, view: torch.Tensor | None, l0: int,
+                      cap: int, src: str, chunk: int, design: str) -> list[int]:
+    """Candidate bandwidths of a large fit from a pilot on every k-th sample (scan order).
+
+    ``scan0``: ``(normal, radiance, weights, split)`` in scan order. The pilot (about
+    :data:`PILOT_SAMPLES` samples, each view and each split half keeping its share) is solved
+    to ``l0`` with the noise model; when its residual is adequate ``[l0]`` (the full solve then
+    checks its own residual, as without a pilot), else :func:`_more_bandwidths` of the pilot.
+    """
+    n, b, w, split = scan0
+    stride = max(1, -(-n.shape[0] // PILOT_SAMPLES))
+    idx = torch.arange(0, n.shape[0], stride, device=n.device)
+    n_p, b_p, w_p, split_p = n[idx], b[idx], w[idx], split[idx.to(split.device)]
+    view_p = None if view is None else view[idx.to(view.device)]
+    design_p, cs_p = lighting_design(spec, n_p, None, l0, None, LIVE_TABLE_ENTRIES, design)
+    pilot = solve_bayes(design_p, b_p, w_p, band_of_index(l0).to(n.device), noise_known=True,
+                        noise_source=src, chunk=chunk, channel_scale=cs_p, split=split_p,
+                        bandwidths=[l0])
+    ad = model_adequacy(pilot, b_p, w_p, noise_known=True, view=view_p)
+    if not ad["likely_causes"] and ad["adequate"]:
+        return [l0]
+    return _more_bandwidths(spec, pilot, l0, cap, True, design)
 
 
 def _split_halves(n: int, view: torch.Tensor | None, good: torch.Tensor) -> torch.Tensor:
@@ -984,6 +1019,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                  f"the Bayesian lighting fit at lmax = {lrep} ({k_req} coefficients per channel)",
                  n.device)
     split = _split_halves(n.shape[0], view, good)
+    scan0 = (n, b, w, split)  # scan order, for a pilot solve (PILOT_MIN_SAMPLES)
     # the solves see the samples grouped by half (each half's rows contiguous: its Gram is
     # taken from slices, not copies); residuals go back to scan order for the adequacy checks
     perm = inv = None
@@ -1039,10 +1075,15 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         # the filter's bandwidth first; larger ones (evidence-chosen) only when its residual
         # is not white noise — the data then carry more than a slope-2 spectrum would
         l0 = cap if auto else max(internal_lmax(spec, lrep, nsamp, design), lrep)
-        full, cscale = solve_to([l0])
+        cands = [l0]
+        if l0 < cap and noise_known and nsamp >= PILOT_MIN_SAMPLES and \
+                design_used(spec, design) == "none":
+            cands = _pilot_bandwidths(spec, scan0, view, l0, cap, src, chunk, design)
+        full, cscale = solve_to(cands)
         first = (full, model_adequacy(full, b_scan, scan(w), noise_known=noise_known,
                                       view=view))
-        if l0 < cap and (first[1]["likely_causes"] or not first[1]["adequate"]):
+        if len(cands) == 1 and l0 < cap and \
+                (first[1]["likely_causes"] or not first[1]["adequate"]):
             full, cscale = solve_to(_more_bandwidths(spec, full, l0, cap, noise_known, design))
     lint = int(full.band.max())
     cands = [lint]
