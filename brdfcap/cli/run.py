@@ -263,6 +263,11 @@ def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int | str,
     except BrdfcapError as exc:
         fail(exc, debug)
     single = len(captures) == 1 and captures[0] == path
+    if problem == "lighting" and click.get_current_context().get_parameter_source("rule") \
+            == click.core.ParameterSource.COMMANDLINE and not quiet:
+        click.echo(f"note: --rule {rule} is not used by problem lighting, whose prior is set "
+                   f"by marginal likelihood (docs/fitting.md, 'Uncertainty'); it applies to "
+                   f"problems brdf, both and decomposition", err=True)
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
                       brdf_lmax=brdf_lmax, design=design)
     # every option of this command with its resolved value (defaults included), for config.json

@@ -62,6 +62,23 @@ def test_problem_lighting_known_phong(captures, tmp_path):
     assert (tmp_path / "o" / "report.html").read_text().count("measured vs predicted") >= 1
 
 
+def test_rule_given_to_problem_lighting_is_said_to_be_unused(captures, tmp_path):
+    """``--rule`` chooses a Tikhonov weight; problem 1 sets its prior by marginal likelihood.
+    Given on the command line with ``--problem lighting`` it is named as unused (one line on
+    stderr), and the fit is the same as without it; the default says nothing.
+    """
+    given = CliRunner().invoke(main, ["run", str(captures["env"]), "--out", str(tmp_path / "a"),
+                                      "--problem", "lighting", "--lmax", "2", "--rule",
+                                      "discrepancy"])
+    assert given.exit_code == 0, given.output
+    assert "note: --rule discrepancy is not used by problem lighting" in given.output
+    plain = CliRunner().invoke(main, ["run", str(captures["env"]), "--out", str(tmp_path / "b"),
+                                      "--problem", "lighting", "--lmax", "2"])
+    assert plain.exit_code == 0 and "--rule" not in plain.output
+    a, b = (json.loads((tmp_path / d / "results.json").read_text()) for d in "ab")
+    assert a["lighting"]["coefficients"] == b["lighting"]["coefficients"]
+
+
 def test_design_option_picks_problem_1s_forward_model(captures, tmp_path):
     """``--design``: the exact quadrature design is the default, ``rh`` R&H's form; both are
     recorded (options, lighting.design, the summary) and the option enters the config hash.
