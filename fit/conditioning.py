@@ -497,6 +497,11 @@ BAYES_DEFINITION += (
 HIDDEN_SOURCE_LMAX = 24
 
 
+#: Channels whose Grams (:func:`hidden_source`) agree up to a factor to this relative tolerance
+#: share one evaluation of the sensitivities ``y(ω)ᵀ G y(ω)`` over the direction grid.
+GRAM_SHARE_RTOL = 1e-9
+
+
 def hidden_source(sol: LinearSolution, lmax_source: int = HIDDEN_SOURCE_LMAX,
                   level: float = ERROR_BOUND_LEVEL) -> tuple[torch.Tensor, torch.Tensor]:
     r"""``(intensity (C,), direction (C, 3))``: the brightest point source the data would miss.
@@ -536,6 +541,7 @@ def hidden_source(sol: LinearSolution, lmax_source: int = HIDDEN_SOURCE_LMAX,
     dirs = dirs.to(bx.whitened_basis.device)
     y = real_sh(dirs, ls).to(torch.float64)
     q = _chi2_quantile(level, 1)
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []  # (G_s, its sensitivities) per channel
     for c in range(nch):
         lam, s2 = float(sol.lam[c]), float(bx.noise_scale[c])
         if bx.prior_precision is not None:  # a full prior: G = σ² (C⁻¹ − C0⁻¹)
@@ -546,7 +552,16 @@ def hidden_source(sol: LinearSolution, lmax_source: int = HIDDEN_SOURCE_LMAX,
             b = bx.whitened_basis[c][:ks] / ps2[:, None] \
                 * bx.whitened_eigenvalues[c].clamp_min(0.0).sqrt()[None, :]  # G_s = B Bᵀ
             g_s = b @ b.T
-        sens = ((y @ g_s) * y).sum(-1).cpu()
+        sens = None
+        for g0, s0 in seen:  # channels sharing one Gram up to a factor (a noise level each)
+            k = float(torch.trace(g_s) / torch.trace(g0).clamp_min(1e-300))
+            if k > 0 and bool(torch.allclose(g_s, k * g0, rtol=GRAM_SHARE_RTOL,
+                                             atol=GRAM_SHARE_RTOL * float(g_s.abs().max()))):
+                sens = k * s0
+                break
+        if sens is None:
+            sens = ((y @ g_s) * y).sum(-1).cpu()
+            seen.append((g_s, sens))
         j = int(torch.argmin(sens))
         inten[c] = math.sqrt(q * s2 / max(float(sens[j]), 1e-300))
         where[c] = dirs[j].cpu()

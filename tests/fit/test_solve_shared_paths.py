@@ -96,3 +96,44 @@ def test_fit_with_unsorted_halves_returns_residuals_in_scan_order(one_thread):
     a4, cs4 = lighting_design(spec, n, None, 4)
     pred = a4(0, 3000) @ (x * cs4)
     torch.testing.assert_close(res, b - pred, rtol=0, atol=1e-9)
+
+
+def test_hidden_source_shares_the_sensitivities_of_proportional_grams(one_thread, monkeypatch):
+    """Rule 5's least-seen source: channels whose Grams agree up to a factor reuse one
+    evaluation over the direction grid; the answer is the per-channel one. Channels whose
+    weights are not proportional are each evaluated.
+    """
+    from brdfcap.fit import conditioning as cd
+
+    n, lmax = 2500, 4
+    dirs = _dirs(n, 4)
+    dirs = dirs[dirs[:, 2] > -0.3]  # a cap unseen: a finite least-seen direction
+    a = real_sh(dirs, lmax)
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(a.shape[1], 3, generator=g, dtype=torch.float64) / (
+        1.0 + band_of_index(lmax).to(torch.float64))[:, None] ** 2
+    b = a @ x + 0.01 * torch.randn(a.shape[0], 3, generator=g, dtype=torch.float64)
+    w0 = 1e4 * (1.0 + torch.rand(a.shape[0], generator=g, dtype=torch.float64))
+    band = band_of_index(lmax)
+    for w, shared in ((w0[:, None] * torch.tensor([1.0, 0.5, 2.0], dtype=torch.float64), True),
+                      (torch.stack([w0, w0.flip(0), w0 ** 0.5 * 100], -1), False)):
+        sol = solve_bayes(a, b, w, band)
+        monkeypatch.setattr(cd, "GRAM_SHARE_RTOL", 1e-9)
+        fast = cd.hidden_source(sol)
+        spy = torch.Tensor.__matmul__
+        products = []
+
+        def counting_matmul(self, other, spy=spy, products=products):
+            products.append(tuple(self.shape))
+            return spy(self, other)
+
+        monkeypatch.setattr(torch.Tensor, "__matmul__", counting_matmul)
+        cd.hidden_source(sol)
+        monkeypatch.setattr(torch.Tensor, "__matmul__", spy)
+        grid = [p for p in products if p[0] > a.shape[1]]  # y (directions × K) @ G
+        assert len(grid) == (1 if shared else 3), (shared, products)
+        monkeypatch.setattr(cd, "GRAM_SHARE_RTOL", 0.0)  # every channel on its own
+        slow = cd.hidden_source(sol)
+        torch.testing.assert_close(fast[0], slow[0], rtol=1e-12, atol=0.0)
+        torch.testing.assert_close(fast[1], slow[1], rtol=0.0, atol=0.0)
+        assert bool(torch.isfinite(fast[0]).all())
