@@ -63,6 +63,12 @@ from .solve import (
     solve_bayes,
     solve_wls,
 )
+from .structured_truncation import (
+    OMITTED_LMAX_CAP,
+    STRUCTURED_MAX_SAMPLES,
+    omitted_lmax,
+    solve_structured,
+)
 
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
            "internal_prediction", "reported_bands_share",
@@ -72,7 +78,8 @@ __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance",
            "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES",
            "resolved_tail_power", "REPORTED_SHARE_ABS", "REPORTED_SHARE_RATIO", "leverage",
            "cut_share", "cut_weight", "LEVERAGE_MAX", "TRUNCATION_CUT_EXPONENTS",
-           "TRUNCATION_ABSORBED", "TRUNCATION_LEVERAGE", "TRUNCATION_DOF_MIN"]
+           "TRUNCATION_ABSORBED", "TRUNCATION_LEVERAGE", "TRUNCATION_DOF_MIN",
+           "STRUCTURED_TRUNCATION"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -116,6 +123,9 @@ TRUNCATION_ABSORBED = (0.0, 0.5, 1.0)
 TRUNCATION_DOF_MIN = 0.5
 TRUNCATION_QUANTILE = 0.5
 TRUNCATION_LMAX_CAP = 40
+#: Where the white truncation term dominates the median sample of a saturated solve, solve with
+#: the omitted bands' covariance instead (:mod:`brdfcap.fit.structured_truncation`).
+STRUCTURED_TRUNCATION = True
 #: The adequacy verdict says what the reported bands alone leave (:func:`reported_bands_share`)
 #: when their RMS residual exceeds this fraction of the mean signal and this multiple of the
 #: internal solution's.
@@ -1155,6 +1165,25 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                          f"by Parseval, tau2 the lighting's power per SH coefficient above L by "
                          f"maximum likelihood on the residual); it exceeds the noise on {dom} "
                          f"of {w.shape[0]} samples")}
+    if truncation is not None and STRUCTURED_TRUNCATION and \
+            (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp and truncation["quantile_ratio"] > 1.0 \
+            and nsamp <= STRUCTURED_MAX_SAMPLES:
+        # the white term dominates the median sample of a saturated solve (one view, Phong
+        # s = 256): the omitted bands' error is not independent per sample; solve with their
+        # covariance instead (fit.structured_truncation; docs/fitting.md, "Truncation as the
+        # omitted bands' covariance")
+        lo = omitted_lmax(_specular_filter(spec, OMITTED_LMAX_CAP, design), lint)
+        d_o, cs_o = lighting_design(spec, n, r, lo, tables, 0, design)
+        ok = (w > 0).all(-1) & torch.isfinite(b).all(-1)
+        st, logdet = solve_structured(d_o(0, n.shape[0]), cs_o, (lint + 1) ** 2, b, ok,
+                                      scl[None, :] * var0, tau, kernel_power(spec, n, r, lo),
+                                      cut_weight(q, alpha), noise_known, split, src)
+        full = in_scan_order(st)
+        truncation["structured"] = {
+            "omitted_lmax": lo, "noise_scale": st.bayes.noise_scale.tolist(),
+            "text": f"the lighting of bands {lint + 1}-{lo} enters with its covariance "
+                    f"tau2 A_o A_o^T (A_o the design's columns of those bands), not as white "
+                    f"noise; above {lo} the white term t_p - |A_o,p|^2 stays"}
     iso = full  # the power-law prior's solution: adequacy, rule 5 and ε are about the data
     envelope = None
     if exact and r is not None and (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp and \
