@@ -65,6 +65,7 @@ from .solve import (
 )
 from .structured_truncation import (
     OMITTED_LMAX_CAP,
+    OMITTED_MIN_SPAN,
     STRUCTURED_MAX_SAMPLES,
     omitted_lmax,
     solve_structured,
@@ -980,6 +981,21 @@ def _band_filter(spec: BRDFSpec, lmax: int, design: str = "rh") -> torch.Tensor:
     return f
 
 
+def _structured_applies(truncation: dict | None, lint: int, nsamp: int) -> bool:
+    """Whether to solve with the omitted bands' covariance (:mod:`.structured_truncation`).
+
+    Wherever the truncation-noise term is active, with at most
+    :data:`~.structured_truncation.STRUCTURED_MAX_SAMPLES` samples (one ``N × N`` Cholesky per
+    channel: six views of 32² and less), except a saturated solve (``K > NONSTATIONARY_FILL · N``)
+    whose median sample the term does not dominate: there the envelope prior is used
+    (:mod:`.nonstationary`), measured on the isotropic white-term solution.
+    """
+    if truncation is None or not STRUCTURED_TRUNCATION or nsamp > STRUCTURED_MAX_SAMPLES:
+        return False
+    saturated = (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp
+    return not saturated or truncation["quantile_ratio"] > 1.0
+
+
 def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, scale_fixing,
                         chunk, view, good, lmax_internal, design="exact") -> SHFit:
     """Fit by method "bayes" of :func:`fit_lighting` (issue 12; ``docs/fitting.md#uncertainty``)."""
@@ -1165,15 +1181,16 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                          f"by Parseval, tau2 the lighting's power per SH coefficient above L by "
                          f"maximum likelihood on the residual); it exceeds the noise on {dom} "
                          f"of {w.shape[0]} samples")}
-    if truncation is not None and STRUCTURED_TRUNCATION and \
-            (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp and truncation["quantile_ratio"] > 1.0 \
-            and nsamp <= STRUCTURED_MAX_SAMPLES:
+    if _structured_applies(truncation, lint, nsamp):
         # the white term dominates the median sample of a saturated solve (one view, Phong
         # s = 256): the omitted bands' error is not independent per sample; solve with their
         # covariance instead (fit.structured_truncation; docs/fitting.md, "Truncation as the
         # omitted bands' covariance")
-        lo = omitted_lmax(_specular_filter(spec, OMITTED_LMAX_CAP, design), lint)
-        d_o, cs_o = lighting_design(spec, n, r, lo, tables, 0, design)
+        lo = omitted_lmax(_specular_filter(spec, OMITTED_LMAX_CAP, design), lint,
+                          span=OMITTED_MIN_SPAN)
+        # own tables, uncached: the fit's kept rows (and the next fit's) stay those at the cap
+        d_o, cs_o = lighting_design(spec, n, r, lo, (SHRows(n, 0), None, ExactRows(
+            spec.brdf, n, r, cache=False)), 0, design)
         ok = (w > 0).all(-1) & torch.isfinite(b).all(-1)
         st, logdet = solve_structured(d_o(0, n.shape[0]), cs_o, (lint + 1) ** 2, b, ok,
                                       scl[None, :] * var0, tau, kernel_power(spec, n, r, lo),

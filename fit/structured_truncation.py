@@ -35,28 +35,34 @@ from .sh import band_of_index
 from .solve import _shifted_inverse, solve_bayes
 
 __all__ = ["omitted_lmax", "structured_covariance", "solve_structured", "OMITTED_REL",
-           "OMITTED_LMAX_CAP", "STRUCTURED_MAX_SAMPLES"]
+           "OMITTED_LMAX_CAP", "OMITTED_MIN_SPAN", "STRUCTURED_MAX_SAMPLES"]
 
 #: The omitted bands end where the lobe's normal-exitance filter stays below this fraction of
 #: its largest value (Phong s = 256: l ≈ 60).
 OMITTED_REL = 1e-3
 #: ... and at most here (K_o = 4225 columns of the design).
 OMITTED_LMAX_CAP = 64
-#: Largest sample count for the ``N × N`` covariance (one Cholesky per channel).
-STRUCTURED_MAX_SAMPLES = 2048
+#: ... and at least this many bands above the solved ``L`` (up to the cap): the lobes the
+#: horizon cuts pass power above any filter's band (``docs/fitting.md``, "Where the horizon cuts
+#: the lobe"); Grace Beckmann σ = 0.2, six views: L = 40, L_o = 64.
+OMITTED_MIN_SPAN = 24
+#: Largest sample count for the ``N × N`` covariance (one Cholesky per channel): six views of
+#: 32² (4872 samples), not six of 256².
+STRUCTURED_MAX_SAMPLES = 8192
 
 
 def omitted_lmax(filt: torch.Tensor, lint: int, cap: int = OMITTED_LMAX_CAP,
-                 rel: float = OMITTED_REL) -> int:
+                 rel: float = OMITTED_REL, span: int = 1) -> int:
     """Last band ``L_o`` of the omitted block: beyond it ``|f_l| < rel · max |f|`` for every l.
 
     ``filt``: ``(lmax+1,)`` the lobe's filter (R&H 2001 eqs. 18–20 form, or the exact lobe's
-    ``sh_filter_exact``), ``lmax ≥ cap``. At least ``lint + 1``, at most ``cap``.
+    ``sh_filter_exact``), ``lmax ≥ cap``. At least ``lint + span`` (and ``lint + 1``), at most
+    ``cap`` (unless ``lint + 1`` exceeds it).
     """
     f = filt.abs().to(torch.float64)[: cap + 1]
     big = torch.nonzero(f >= rel * float(f.max().clamp_min(1e-300))).flatten()
     last = int(big.max()) if big.numel() else 0
-    return max(lint + 1, min(cap, last + 1))
+    return max(lint + 1, min(cap, max(last + 1, lint + span)))
 
 
 def structured_covariance(rows: torch.Tensor, k: int, tau2: float, noise_var: torch.Tensor,

@@ -69,6 +69,10 @@ def test_omitted_lmax_follows_the_filter():
     assert omitted_lmax(f, 27, cap=100) == 60  # exp(-l²/512) < 1e-3 from l = 59.5
     assert omitted_lmax(f, 27, cap=40) == 40
     assert omitted_lmax(f, 70, cap=100) == 71
+    narrow = torch.exp(-(0.2 * torch.arange(101, dtype=torch.float64)) ** 2)  # l ≈ 13
+    assert omitted_lmax(narrow, 40, cap=64) == 41
+    assert omitted_lmax(narrow, 40, cap=64, span=24) == 64  # the cut lobes' tail
+    assert omitted_lmax(f, 27, cap=100, span=24) == 60
 
 
 @needs_probes
