@@ -487,14 +487,18 @@ class ExactRows:
     """
 
     def __init__(self, model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
-                 refine: float = 1.0, lmax_min: int = 0):
+                 refine: float = 1.0, lmax_min: int = 0, cache: bool = True):
         self.model, self.normal, self.reflected, self.refine = model, normal, reflected, refine
         self.lmax_min = lmax_min
         self.key = _key(model, normal, reflected, refine)
         self.lmax = -1
         self.a: torch.Tensor | None = None
         self.q: torch.Tensor | None = None
-        hit = _CACHE.get(self.key)
+        # cache=False: neither read nor replace the kept table (a one-off larger bandwidth,
+        # e.g. fit.structured_truncation's omitted bands, must not change later fits' rows:
+        # rows of a table integrated at a larger L differ in the last digits)
+        self.cache = cache
+        hit = _CACHE.get(self.key) if cache else None
         if hit is not None:
             self.lmax, self.a, self.q = hit
 
@@ -505,7 +509,7 @@ class ExactRows:
                                         self.refine)
             self.lmax = lmax
             size = 8 * (self.a.numel() + (0 if self.q is None else self.q.numel()))
-            if size <= CACHE_BYTES:
+            if self.cache and size <= CACHE_BYTES:
                 _CACHE[self.key] = (self.lmax, self.a, self.q)
                 _CACHE.move_to_end(self.key)
                 while len(_CACHE) > _CACHE_SIZE:

@@ -63,6 +63,13 @@ from .solve import (
     solve_bayes,
     solve_wls,
 )
+from .structured_truncation import (
+    OMITTED_LMAX_CAP,
+    OMITTED_MIN_SPAN,
+    STRUCTURED_MAX_SAMPLES,
+    omitted_lmax,
+    solve_structured,
+)
 
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
            "internal_prediction", "reported_bands_share",
@@ -73,7 +80,7 @@ __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance",
            "resolved_tail_power", "REPORTED_SHARE_ABS", "REPORTED_SHARE_RATIO", "leverage",
            "cut_share", "cut_weight", "LEVERAGE_MAX", "TRUNCATION_CUT_EXPONENTS",
            "TRUNCATION_ABSORBED", "TRUNCATION_LEVERAGE", "TRUNCATION_DOF_MIN",
-           "PILOT_MIN_SAMPLES", "PILOT_SAMPLES"]
+           "PILOT_MIN_SAMPLES", "PILOT_SAMPLES", "STRUCTURED_TRUNCATION"]
 
 #: Bands whose filtered power-law amplitude is below this fraction of the DC's are not solved.
 INTERNAL_REL = 1e-3
@@ -127,6 +134,9 @@ TRUNCATION_LMAX_CAP = 40
 #: (309k samples), lmax 8 under Grace, one solve instead of two (``bench/RESULTS.md``).
 PILOT_MIN_SAMPLES = 2 ** 15
 PILOT_SAMPLES = 2 ** 13
+#: Solve with the omitted bands' covariance instead of the white truncation term where
+#: :func:`_structured_applies` (:mod:`brdfcap.fit.structured_truncation`).
+STRUCTURED_TRUNCATION = True
 #: The adequacy verdict says what the reported bands alone leave (:func:`reported_bands_share`)
 #: when their RMS residual exceeds this fraction of the mean signal and this multiple of the
 #: internal solution's.
@@ -1005,6 +1015,21 @@ def _band_filter(spec: BRDFSpec, lmax: int, design: str = "rh") -> torch.Tensor:
     return f
 
 
+def _structured_applies(truncation: dict | None, lint: int, nsamp: int) -> bool:
+    """Whether to solve with the omitted bands' covariance (:mod:`.structured_truncation`).
+
+    Wherever the truncation-noise term is active, with at most
+    :data:`~.structured_truncation.STRUCTURED_MAX_SAMPLES` samples (one ``N × N`` Cholesky per
+    channel: six views of 32² and less), except a saturated solve (``K > NONSTATIONARY_FILL · N``)
+    whose median sample the term does not dominate: there the envelope prior is used
+    (:mod:`.nonstationary`), measured on the isotropic white-term solution.
+    """
+    if truncation is None or not STRUCTURED_TRUNCATION or nsamp > STRUCTURED_MAX_SAMPLES:
+        return False
+    saturated = (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp
+    return not saturated or truncation["quantile_ratio"] > 1.0
+
+
 def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, scale_fixing,
                         chunk, view, good, lmax_internal, design="exact") -> SHFit:
     """Fit by method "bayes" of :func:`fit_lighting` (issue 12; ``docs/fitting.md#uncertainty``)."""
@@ -1196,6 +1221,26 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                          f"by Parseval, tau2 the lighting's power per SH coefficient above L by "
                          f"maximum likelihood on the residual); it exceeds the noise on {dom} "
                          f"of {w.shape[0]} samples")}
+    if _structured_applies(truncation, lint, nsamp):
+        # the white term dominates the median sample of a saturated solve (one view, Phong
+        # s = 256): the omitted bands' error is not independent per sample; solve with their
+        # covariance instead (fit.structured_truncation; docs/fitting.md, "Truncation as the
+        # omitted bands' covariance")
+        lo = omitted_lmax(_specular_filter(spec, OMITTED_LMAX_CAP, design), lint,
+                          span=OMITTED_MIN_SPAN)
+        # own tables, uncached: the fit's kept rows (and the next fit's) stay those at the cap
+        d_o, cs_o = lighting_design(spec, n, r, lo, (SHRows(n, 0), None, ExactRows(
+            spec.brdf, n, r, cache=False)), 0, design)
+        ok = (w > 0).all(-1) & torch.isfinite(b).all(-1)
+        st, logdet = solve_structured(d_o(0, n.shape[0]), cs_o, (lint + 1) ** 2, b, ok,
+                                      scl[None, :] * var0, tau, kernel_power(spec, n, r, lo),
+                                      cut_weight(q, alpha), noise_known, split, src)
+        full = in_scan_order(st)
+        truncation["structured"] = {
+            "omitted_lmax": lo, "noise_scale": st.bayes.noise_scale.tolist(),
+            "text": f"the lighting of bands {lint + 1}-{lo} enters with its covariance "
+                    f"tau2 A_o A_o^T (A_o the design's columns of those bands), not as white "
+                    f"noise; above {lo} the white term t_p - |A_o,p|^2 stays"}
     iso = full  # the power-law prior's solution: adequacy, rule 5 and ε are about the data
     envelope = None
     if exact and r is not None and (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp and \
