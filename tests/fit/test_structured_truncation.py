@@ -75,6 +75,25 @@ def test_omitted_lmax_follows_the_filter():
     assert omitted_lmax(f, 27, cap=100, span=24) == 60
 
 
+def _matrix_fit(request, tmp_path_factory, brdf: str, views: int, lmax: int):
+    """The matrix's first repetition of one Grace cell (``bench/truth_matrix.py``'s seed and
+    noise): ``(fit, truth)``, the truth the probe's own projection to ``lmax``.
+    """
+    pc = getattr(request.config, "cache", None)
+    cache = Path(pc.mkdir("truth_matrix")) if pc is not None else \
+        tmp_path_factory.mktemp("truth_matrix")
+    data = rendered(PROBES / "grace.hdr", brdf, views=6, px=32, cache=cache)
+    sel = data["view"] < views
+    n, wo, v, b = data["normal"][sel], data["wo"][sel], data["view"][sel], data["radiance"][sel]
+    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
+    sd = 0.01 * b.abs().mean(0)
+    g = torch.Generator().manual_seed(17 * lmax + views)
+    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    fit = il.fit_lighting(n, bn, lmax, BRDFS[brdf], reflected=r,
+                          variance=(sd ** 2).expand_as(b).clone(), view=v)
+    return fit, project_envmap(data["probe"], lmax, quadrature="pixel")
+
+
 @needs_probes
 @pytest.mark.usefixtures("one_thread")
 def test_grace_phong256_one_view_structured_estimate(request, tmp_path_factory):
@@ -85,19 +104,7 @@ def test_grace_phong256_one_view_structured_estimate(request, tmp_path_factory):
     band 7 5.1%; ``STRUCTURED_TRUNCATION = False`` fails this). Nothing is determined either
     way (bounds 13–30%): the width is the solved bands' stationary prior (``docs/fitting.md``).
     """
-    pc = getattr(request.config, "cache", None)
-    cache = Path(pc.mkdir("truth_matrix")) if pc is not None else \
-        tmp_path_factory.mktemp("truth_matrix")
-    data = rendered(PROBES / "grace.hdr", "phong s=256", views=6, px=32, cache=cache)
-    sel = data["view"] < 1
-    n, wo, v, b = data["normal"][sel], data["wo"][sel], data["view"][sel], data["radiance"][sel]
-    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
-    sd = 0.01 * b.abs().mean(0)
-    bn = b + sd * torch.randn(b.shape, generator=torch.Generator().manual_seed(17 * 8 + 1),
-                              dtype=torch.float64)
-    fit = il.fit_lighting(n, bn, 8, BRDFS["phong s=256"], reflected=r,
-                          variance=(sd ** 2).expand_as(b).clone(), view=v)
-    truth = project_envmap(data["probe"], 8, quadrature="pixel")
+    fit, truth = _matrix_fit(request, tmp_path_factory, "phong s=256", 1, 8)
     band = band_of_index(8)
     x = fit.coefficients
     err = [float(((x[band == l] - truth[band == l]).norm(dim=0)
@@ -121,18 +128,7 @@ def test_grace_beckmann02_six_views_lmax16(request, tmp_path_factory):
     """
     from brdfcap.truth_matrix import score
 
-    pc = getattr(request.config, "cache", None)
-    cache = Path(pc.mkdir("truth_matrix")) if pc is not None else \
-        tmp_path_factory.mktemp("truth_matrix")
-    data = rendered(PROBES / "grace.hdr", "beckmann sigma=0.2", views=6, px=32, cache=cache)
-    n, wo, v, b = data["normal"], data["wo"], data["view"], data["radiance"]
-    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
-    sd = 0.01 * b.abs().mean(0)
-    bn = b + sd * torch.randn(b.shape, generator=torch.Generator().manual_seed(17 * 16 + 6),
-                              dtype=torch.float64)
-    fit = il.fit_lighting(n, bn, 16, BRDFS["beckmann sigma=0.2"], reflected=r,
-                          variance=(sd ** 2).expand_as(b).clone(), view=v)
-    truth = project_envmap(data["probe"], 16, quadrature="pixel")
+    fit, truth = _matrix_fit(request, tmp_path_factory, "beckmann sigma=0.2", 6, 16)
     worst, hits, tot, measured, truth_l = score(fit, truth, 16)
     assert truth_l == 14
     assert abs(measured - truth_l) <= 1, (measured, truth_l)
