@@ -1222,19 +1222,18 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                          f"maximum likelihood on the residual); it exceeds the noise on {dom} "
                          f"of {w.shape[0]} samples")}
     if _structured_applies(truncation, lint, nsamp):
-        # the white term dominates the median sample of a saturated solve (one view, Phong
-        # s = 256): the omitted bands' error is not independent per sample; solve with their
-        # covariance instead (fit.structured_truncation; docs/fitting.md, "Truncation as the
-        # omitted bands' covariance")
+        # the omitted bands' error is not independent per sample: solve with their covariance
+        # instead of the white term (_structured_applies says where; fit.structured_truncation;
+        # docs/fitting.md, "Truncation as the omitted bands' covariance")
         lo = omitted_lmax(_specular_filter(spec, OMITTED_LMAX_CAP, design), lint,
                           span=OMITTED_MIN_SPAN)
         # own tables, uncached: the fit's kept rows (and the next fit's) stay those at the cap
         d_o, cs_o = lighting_design(spec, n, r, lo, (SHRows(n, 0), None, ExactRows(
             spec.brdf, n, r, cache=False)), 0, design)
         ok = (w > 0).all(-1) & torch.isfinite(b).all(-1)
-        st, logdet = solve_structured(d_o(0, n.shape[0]), cs_o, (lint + 1) ** 2, b, ok,
-                                      scl[None, :] * var0, tau, kernel_power(spec, n, r, lo),
-                                      cut_weight(q, alpha), noise_known, split, src)
+        st = solve_structured(d_o(0, n.shape[0]), cs_o, (lint + 1) ** 2, b, ok,
+                              scl[None, :] * var0, tau, kernel_power(spec, n, r, lo),
+                              cut_weight(q, alpha), noise_known, split, src)
         full = in_scan_order(st)
         truncation["structured"] = {
             "omitted_lmax": lo, "noise_scale": st.bayes.noise_scale.tolist(),

@@ -19,10 +19,10 @@ cheap where ``N`` is small, one view of 812 samples) and solve as before. The sa
 then alias into the solved bands as the omitted bands do (they oscillate across the samples
 and largely cancel in the low bands), not as white noise of the same per-sample variance.
 
-Used by :func:`brdfcap.fit.inverse_lighting.fit_lighting` only where the white term dominates
-the median sample of a saturated solve (``K > N/2``; one view of Phong s = 256) and ``N`` is
-at most :data:`STRUCTURED_MAX_SAMPLES`; ``docs/fitting.md``, "Truncation as the omitted bands'
-covariance", says what it changed (measured: the estimate, not the verdicts).
+Used by :func:`brdfcap.fit.inverse_lighting.fit_lighting` wherever its truncation-noise term
+is active and ``N`` is at most :data:`STRUCTURED_MAX_SAMPLES`, except a saturated solve
+(``K > N/2``) whose median sample the term does not dominate (the envelope prior takes that
+one); ``docs/fitting.md``, "Truncation as the omitted bands' covariance", says what it changed.
 """
 
 from __future__ import annotations
@@ -102,7 +102,6 @@ def solve_structured(rows: torch.Tensor, scale: torch.Tensor | None, k: int, b: 
     hyper-parameters. The returned solution's ``bayes.residual`` is ``b − A x̂`` (0 where
     unused), ``weighted_residual`` the whitened residual, put back on the used samples (the
     adequacy checks read it in scan order; the innovations are white under the model).
-    Returns ``(solution, −½ log|Σ_e|)`` summed over channels.
     """
     n, nch = b.shape
     idx = torch.nonzero(used).flatten()
@@ -110,7 +109,6 @@ def solve_structured(rows: torch.Tensor, scale: torch.Tensor | None, k: int, b: 
     aw = torch.zeros(nu, nch, k, dtype=torch.float64, device=b.device)
     yw = torch.zeros(nu, nch, dtype=torch.float64, device=b.device)
     chol = []
-    logdet = 0.0
     for c in range(nch):
         rc = rows[idx] if rows.ndim == 2 else rows[idx, c]
         rc = rc.to(torch.float64) * (1.0 if scale is None or rows.ndim == 3 else float(scale[c]))
@@ -120,7 +118,6 @@ def solve_structured(rows: torch.Tensor, scale: torch.Tensor | None, k: int, b: 
         chol.append((ch, rc[:, :k], cov))
         aw[:, c] = torch.linalg.solve_triangular(ch, rc[:, :k], upper=False)
         yw[:, c] = torch.linalg.solve_triangular(ch, b[idx, c:c + 1], upper=False)[:, 0]
-        logdet -= float(torch.log(torch.diagonal(ch)).sum())
     band = band_of_index(math.isqrt(k) - 1).to(b.device)
     ones = torch.ones(nu, nch, dtype=torch.float64, device=b.device)
     sol = solve_bayes(aw, yw, ones, band, noise_known=noise_known,
@@ -131,7 +128,7 @@ def solve_structured(rows: torch.Tensor, scale: torch.Tensor | None, k: int, b: 
     res = torch.zeros(n, nch, dtype=torch.float64, device=b.device)
     wres = torch.zeros_like(res)
     for c in range(nch):
-        ch, ar, _ = chol[c]
+        _, ar, _ = chol[c]
         res[idx, c] = b[idx, c] - ar @ x[:, c]
         wres[idx, c] = bx.weighted_residual[:, c]
     bx.residual, bx.weighted_residual = res, wres
@@ -156,4 +153,4 @@ def solve_structured(rows: torch.Tensor, scale: torch.Tensor | None, k: int, b: 
                 sx[h, :, c] = ps * (inv @ (ah.T @ yh))
                 scov[h, c] = inv * (ps[:, None] * ps[None, :]) * s2
         bx.split_coefficients, bx.split_covariance = sx, scov
-    return sol, logdet
+    return sol
