@@ -364,8 +364,11 @@ class LiveRows:
             out = full.new_empty((e - s, self.width))
         # one gather and one product per block, not one per run: each is a parallel region,
         # and under load two threads pay ~0.5 ms per region (310k-sample Lambertian fit:
-        # 3.2 s CPU in ~7,000 run copies at two threads, 0.34 s at one)
-        torch.index_select(full, 1, self.cols.to(full.device), out=out)
+        # 3.2 s CPU in ~7,000 run copies at two threads, 0.34 s at one). torch.gather with the
+        # column index broadcast over the rows, not index_select along dim 1: 3.5x less time
+        # for the same copy (76 blocks of 4096 rows at L = 20, Lambertian's live columns, one
+        # thread: 0.17 s -> 0.048 s)
+        torch.gather(full, 1, self.cols.to(full.device).expand(e - s, -1), out=out)
         if self.rows is not None:
             out.mul_(self.filt_live.to(out))
         return out
