@@ -248,9 +248,11 @@ def _parse_pose(value: Any, key: str, path: Path) -> np.ndarray:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise CaptureError(f"key '{key}' must be a 3x4 matrix [R|t]", path) from None
-    if m.shape != (3, 4) or not np.all(np.isfinite(m)):
-        raise CaptureError(f"key '{key}' must be a finite 3x4 matrix [R|t], got shape {m.shape}",
-                           path)
+    if m.shape != (3, 4):
+        raise CaptureError(f"key '{key}' must be a 3x4 matrix [R|t], got shape {m.shape}", path)
+    if not np.all(np.isfinite(m)):
+        raise CaptureError(f"key '{key}' must be a finite 3x4 matrix [R|t], got a nan or inf "
+                           "entry", path)
     r = m[:, :3]
     if np.abs(r @ r.T - np.eye(3)).max() > 1e-4 or np.linalg.det(r) < 0:
         raise CaptureError(f"key '{key}': the 3x3 part is not a rotation (R R^T != I or det < 0)",

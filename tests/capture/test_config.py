@@ -83,6 +83,19 @@ def test_bad_numbers_name_key_and_file(tmp_path, old, new, key):
     _one_line_error(tmp_path, BASE.replace(old, new, 1), key)
 
 
+@pytest.mark.parametrize("new,says", [
+    ("[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, nan]]", "nan or inf"),
+    ("[[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0]]", "shape (2, 4)"),
+    ("[[2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0]]", "not a rotation"),
+])
+def test_bad_pose_says_what_is_wrong(tmp_path, new, says):
+    """A pose with a nan is not reported as a wrong shape (it has the right one)."""
+    old = "[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0]]"
+    assert old in BASE
+    msg = _one_line_error(tmp_path, BASE.replace(old, new, 1), "images[0].world_to_camera")
+    assert says in msg
+
+
 def test_same_image_twice_is_refused(tmp_path):
     """Issue #17 row 7: the same [[images]] entry twice would double its samples."""
     msg = _one_line_error(tmp_path, BASE.replace('file = "b.exr"', 'file = "a.exr"'),
