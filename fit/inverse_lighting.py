@@ -21,6 +21,7 @@ import torch
 
 from brdfcap.core.errors import FitError
 
+from . import joint_envelope as _joint
 from .brdf_models import BRDFSpec, diffuse_filter, specular_filter
 from .conditioning import (
     BAYES_DEFINITION,
@@ -1224,6 +1225,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                          f"by Parseval, tau2 the lighting's power per SH coefficient above L by "
                          f"maximum likelihood on the residual); it exceeds the noise on {dom} "
                          f"of {w.shape[0]} samples")}
+    joint, joint_sol = None, None  # the joint envelope prior (fit.joint_envelope), if used
     if _structured_applies(truncation, lint, nsamp):
         # the omitted bands' error is not independent per sample: solve with their covariance
         # instead of the white term (_structured_applies says where; fit.structured_truncation;
@@ -1234,10 +1236,18 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         d_o, cs_o = lighting_design(spec, n, r, lo, (SHRows(n, 0), None, ExactRows(
             spec.brdf, n, r, cache=False)), 0, design)
         ok = (w > 0).all(-1) & torch.isfinite(b).all(-1)
-        st = solve_structured(d_o(0, n.shape[0]), cs_o, (lint + 1) ** 2, b, ok,
+        rows_o = d_o(0, n.shape[0])
+        st = solve_structured(rows_o, cs_o, (lint + 1) ** 2, b, ok,
                               scl[None, :] * var0, tau, kernel_power(spec, n, r, lo),
                               cut_weight(q, alpha), noise_known, split, src)
         full = in_scan_order(st)
+        if _joint.JOINT_ENVELOPE and (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp:
+            # saturated and dominated by the lighting above L (one view of Phong s = 256): one
+            # envelope x power-law prior for the solved and the omitted bands
+            # (fit.joint_envelope; docs/fitting.md, "One prior for the solved and the omitted
+            # bands"); the structured solution stays the one the adequacy and rule 5 judge
+            js, joint = _joint.solve_joint_envelope(st, rows_o, cs_o, b, ok, var0, noise_known)
+            joint_sol = None if js is None else in_scan_order(js)
         truncation["structured"] = {
             "omitted_lmax": lo, "noise_scale": st.bayes.noise_scale.tolist(),
             "text": f"the lighting of bands {lint + 1}-{lo} enters with its covariance "
@@ -1245,6 +1255,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                     f"noise; above {lo} the white term t_p - |A_o,p|^2 stays"}
     iso = full  # the power-law prior's solution: adequacy, rule 5 and ε are about the data
     envelope = None
+    if joint_sol is not None:
+        full = joint_sol
     if exact and r is not None and (lint + 1) ** 2 > NONSTATIONARY_FILL * nsamp and \
             (truncation is None or truncation["quantile_ratio"] <= 1.0):
         # a saturated solve (one view: K up to N): the prior sets most of the reported bands'
@@ -1253,9 +1265,20 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         # lighting") where its evidence is higher. Not where the truncation noise dominates
         # the median sample (Grace, Phong s = 256: every sample, 5900x the noise): the
         # envelope of a solution the data barely hold moved L00 by 20% (6 s.d.)
-        ns, envelope = solve_nonstationary(full)
-        if ns is not None:
-            full = ns
+        if _joint.JOINT_ENVELOPE_SATURATED:
+            lo = omitted_lmax(_specular_filter(spec, OMITTED_LMAX_CAP, design), lint,
+                              span=OMITTED_MIN_SPAN)
+            d_o, cs_o = lighting_design(spec, n, r, lo, (SHRows(n, 0), None, ExactRows(
+                spec.brdf, n, r, cache=False)), 0, design)
+            ok = (w > 0).all(-1) & torch.isfinite(b).all(-1)
+            js, joint = _joint.solve_joint_envelope(full, d_o(0, n.shape[0]), cs_o, b, ok,
+                                                    var0, noise_known)
+            if js is not None:
+                full = joint_sol = in_scan_order(js)
+        if joint_sol is None:
+            ns, envelope = solve_nonstationary(full)
+            if ns is not None:
+                full = ns
     filt = _band_filter(spec, lint, design)
     eps = noise_level(iso)
     prediction = _prediction(spec, eps)
@@ -1273,10 +1296,13 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     sol = restrict(full, k)
     rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k],
                                                       hid)
-    if first is not None and first[0] is iso:  # same solution, same data and weights
+    # the model the verdict judges: the joint prior's own residual where it is used (its
+    # omitted bands' conditional mean is part of its prediction), else the power law's
+    judged = joint_sol if joint_sol is not None and full is joint_sol else iso
+    if first is not None and first[0] is judged:  # same solution, same data and weights
         adequacy = first[1]
     else:
-        adequacy = model_adequacy(iso, b_scan, scan(w), noise_known=noise_known, view=view)
+        adequacy = model_adequacy(judged, b_scan, scan(w), noise_known=noise_known, view=view)
     adequacy["truncation"] = truncation
     if truncation is not None:
         adequacy["verdict"] += (f" (with truncation noise: the lighting above L = {lint} that "
@@ -1323,16 +1349,21 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     fit.covariance = cov
     fit.posterior_stderr = post_se
     fit.internal_lmax = lint
-    fit.internal_coefficients = iso.coefficients  # the solution the adequacy verdict judges
-    fit.internal_residual = iso.bayes.residual
+    fit.internal_coefficients = judged.coefficients  # the solution the adequacy verdict judges
+    fit.internal_residual = judged.bayes.residual
     fit.internal_used = scan(w > 0).any(-1)
     fit.prior = {"slope": bx.slope.tolist(), "scale": bx.prior_scale.tolist(),
                  "noise_scale": bx.noise_scale.tolist(),
                  "log_evidence": bx.log_evidence.tolist(),
                  "form": "Var(L_lm) = scale * (l+1)^-slope" if full is iso else
-                         "Cov(L_lm, L_l'm') = scale * integral of h Y_lm Y_l'm' (envelope h: "
-                         "the power-law fit's mean squared, floored; fit.nonstationary)",
+                         ("L = P_Lo[sqrt(h) z], z_lm ~ N(0, scale (l+1)^-slope): one prior for "
+                          "the solved bands and the omitted ones to L_o (envelope h: the "
+                          "structured solution's mean squared, floored; fit.joint_envelope)"
+                          if joint_sol is not None and full is joint_sol else
+                          "Cov(L_lm, L_l'm') = scale * integral of h Y_lm Y_l'm' (envelope h: "
+                          "the power-law fit's mean squared, floored; fit.nonstationary)"),
                  "envelope": envelope,
+                 "joint_envelope": joint,
                  "robustness_weakening": [[float(v) for v in kappa[full.band == l].max(0).values]
                                           for l in range(int(full.band.max()) + 1)],
                  "hidden_source": {"intensity": hid.tolist(), "direction": hid_dir.tolist(),

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 from brdfcap.capture.reference import LatLongProbe, render_environment
 from brdfcap.fit.brdf_models import BRDFSpec
-from brdfcap.fit.envmap import reconstruct_envmap
+from brdfcap.fit.envmap import project_envmap, reconstruct_envmap
 
-from brdfcap.testing import random_lighting, unit
+from brdfcap.testing import random_lighting, reference_dir, unit
+
+#: The reference light probes (``../shared/reference/probes``) the matrix-cell tests read.
+PROBES = reference_dir(Path(__file__).resolve().parents[2]) / "probes"
 
 
 @pytest.fixture
@@ -45,3 +50,33 @@ def phong_reference_samples():
                            rel_tol=rel_tol)
     return {"spec": spec, "light": light, "normal": n, "wo": wo, "reflected": r,
             "radiance": b, "rel_tol": rel_tol}
+
+
+@pytest.fixture
+def matrix_cell(request, tmp_path_factory):
+    """``fit(brdf, views, lmax, probe="grace")``: the done-when matrix's first repetition of one
+    cell (``bench/truth_matrix.py``'s render, seed ``17·lmax + views`` and 1% noise), fitted by
+    :func:`brdfcap.fit.inverse_lighting.fit_lighting`; returns ``(fit, truth)``, the truth the
+    probe's own projection to ``lmax``. Renders are cached in pytest's cache directory.
+    """
+    from brdfcap.fit import inverse_lighting as il
+
+    from brdfcap.truth_matrix import BRDFS, rendered
+
+    pc = getattr(request.config, "cache", None)
+    cache = Path(pc.mkdir("truth_matrix")) if pc is not None else \
+        tmp_path_factory.mktemp("truth_matrix")
+
+    def fit(brdf: str, views: int, lmax: int, probe: str = "grace"):
+        data = rendered(PROBES / f"{probe}.hdr", brdf, views=6, px=32, cache=cache)
+        sel = data["view"] < views
+        n, wo, v, b = (data[k][sel] for k in ("normal", "wo", "view", "radiance"))
+        r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
+        sd = 0.01 * b.abs().mean(0)
+        g = torch.Generator().manual_seed(17 * lmax + views)
+        bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+        out = il.fit_lighting(n, bn, lmax, BRDFS[brdf], reflected=r,
+                              variance=(sd ** 2).expand_as(b).clone(), view=v)
+        return out, project_envmap(data["probe"], lmax, quadrature="pixel")
+
+    return fit
