@@ -1265,20 +1265,9 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
         # lighting") where its evidence is higher. Not where the truncation noise dominates
         # the median sample (Grace, Phong s = 256: every sample, 5900x the noise): the
         # envelope of a solution the data barely hold moved L00 by 20% (6 s.d.)
-        if _joint.JOINT_ENVELOPE_SATURATED:
-            lo = omitted_lmax(_specular_filter(spec, OMITTED_LMAX_CAP, design), lint,
-                              span=OMITTED_MIN_SPAN)
-            d_o, cs_o = lighting_design(spec, n, r, lo, (SHRows(n, 0), None, ExactRows(
-                spec.brdf, n, r, cache=False)), 0, design)
-            ok = (w > 0).all(-1) & torch.isfinite(b).all(-1)
-            js, joint = _joint.solve_joint_envelope(full, d_o(0, n.shape[0]), cs_o, b, ok,
-                                                    var0, noise_known)
-            if js is not None:
-                full = joint_sol = in_scan_order(js)
-        if joint_sol is None:
-            ns, envelope = solve_nonstationary(full)
-            if ns is not None:
-                full = ns
+        ns, envelope = solve_nonstationary(full)
+        if ns is not None:
+            full = ns
     filt = _band_filter(spec, lint, design)
     eps = noise_level(iso)
     prediction = _prediction(spec, eps)

@@ -40,15 +40,11 @@ import torch
 from .sh import band_of_index, real_sh
 from .solve import RATIO_LIMIT, SLOPE_PRIOR, LinearSolution
 
-__all__ = ["solve_joint_envelope", "JOINT_FLOOR", "JOINT_SLOPES", "JOINT_ENVELOPE",
-           "JOINT_ENVELOPE_SATURATED"]
+__all__ = ["solve_joint_envelope", "JOINT_FLOOR", "JOINT_SLOPES", "JOINT_ENVELOPE"]
 
 #: Use the joint prior where :func:`brdfcap.fit.inverse_lighting.fit_lighting` solves a
 #: saturated one-view design on the structured truncation path.
 JOINT_ENVELOPE = True
-#: Also in place of :mod:`.nonstationary`'s envelope on the other saturated one-view solves
-#: (the white truncation term's; the design to ``L_o`` is then integrated for it).
-JOINT_ENVELOPE_SATURATED = False
 #: Floor of the envelope ``h``, as a fraction of its mean: no direction is declared dark. The
 #: evidence prefers 5%, the truth 20% (Grace and Wells, Phong s = 256, one view: coverage of
 #: bands ≤ 8 0.87 / 0.86 at 5%, 0.93 / 0.90 at 20%; ``bench/RESULTS.md``).
