@@ -32,15 +32,16 @@ maximise the marginal likelihood of the data in data space (``N × N``; MacKay 1
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import torch
 
+from .nonstationary import full_prior_solution
 from .sh import band_of_index, real_sh
-from .solve import RATIO_LIMIT, SLOPE_PRIOR, LinearSolution
+from .solve import SLOPE_PRIOR, LinearSolution
 
-__all__ = ["solve_joint_envelope", "JOINT_FLOOR", "JOINT_SLOPES", "JOINT_ENVELOPE"]
+__all__ = ["solve_joint_envelope", "gauss_grid", "envelope_on_grid", "JOINT_FLOOR",
+           "JOINT_SLOPES", "JOINT_ENVELOPE"]
 
 #: Use the joint prior where :func:`brdfcap.fit.inverse_lighting.fit_lighting` solves a
 #: saturated one-view design on the structured truncation path.
@@ -57,7 +58,7 @@ _LOG_NOISE = torch.linspace(-1.0, 1.0, 41, dtype=torch.float64)
 _LOG_SCALE = torch.linspace(-8.0, 6.0, 141, dtype=torch.float64)
 
 
-def _gauss_grid(nth: int) -> tuple[torch.Tensor, torch.Tensor]:
+def gauss_grid(nth: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Gauss–Legendre nodes in ``cos θ`` × ``2 nth`` uniform ``φ``: ``(G, 3)`` and weights."""
     mu, gw = np.polynomial.legendre.leggauss(nth)
     nph = 2 * nth
@@ -69,7 +70,7 @@ def _gauss_grid(nth: int) -> tuple[torch.Tensor, torch.Tensor]:
     return dirs, w
 
 
-def _envelope(dirs: torch.Tensor, w: torch.Tensor, coef: torch.Tensor, floor: float
+def envelope_on_grid(dirs: torch.Tensor, w: torch.Tensor, coef: torch.Tensor, floor: float
               ) -> torch.Tensor:
     """``h`` on the grid: channel mean of ``L̂_c²`` over its sphere mean, floored, mean 1."""
     lhat = real_sh(dirs, math.isqrt(coef.shape[0]) - 1) @ coef
@@ -125,8 +126,8 @@ def solve_joint_envelope(sol: LinearSolution, rows: torch.Tensor, scale: torch.T
     lo = math.isqrt(ko) - 1
     lint = math.isqrt(k) - 1
     info: dict = {"used": False, "floor": floor, "omitted_lmax": lo}
-    dirs, w = _gauss_grid(lo + lint + 2)
-    h = _envelope(dirs, w, x, floor)
+    dirs, w = gauss_grid(lo + lint + 2)
+    h = envelope_on_grid(dirs, w, x, floor)
     sw = h.sqrt() * w
     t = torch.zeros(ko, ko, dtype=torch.float64)
     for s in range(0, dirs.shape[0], 1024):
@@ -223,38 +224,17 @@ def solve_joint_envelope(sol: LinearSolution, rows: torch.Tensor, scale: torch.T
         linv = torch.linalg.solve_triangular(lss, eye, upper=False)
         out["m_inv"].append(linv.T @ linv)
         out["logev"].append(-0.5 * m2)
-    dt, dev = sol.coefficients.dtype, sol.coefficients.device
-    coef = torch.stack(out["coef"], -1).to(dt)
-    cov = torch.stack(out["cov"]).to(dt)
-    a_t = torch.tensor(out["a"], dtype=torch.float64)
-    post = torch.diagonal(cov, dim1=-2, dim2=-1).T.contiguous()
-    prior_cov = a_t[:, None, None] * torch.stack(out["m"])
-    prior = torch.diagonal(prior_cov, dim1=-2, dim2=-1).T.contiguous()
-    ratio = post / prior.clamp_min(1e-300)
-    det = ratio <= RATIO_LIMIT
-    lam_t = torch.tensor(out["lam"], dtype=torch.float64, device=dev)
-    eig = torch.stack(out["eig"])
-    bx = sol.bayes
-    nall = b.shape[0]
-    res = torch.zeros(nall, nch, dtype=torch.float64, device=b.device)
+    res = torch.zeros(b.shape[0], nch, dtype=torch.float64, device=b.device)
     wres = torch.zeros_like(res)
     res[idx] = torch.stack(out["res"], -1).to(res)
     wres[idx] = torch.stack(out["inn"], -1).to(res)
-    new_bx = replace(bx, prior_variance=prior, posterior_variance=post, prior_scale=a_t,
-                     residual=res, weighted_residual=wres,
-                     noise_scale=torch.tensor(out["s"], dtype=torch.float64),
-                     slope=torch.tensor(out["beta"], dtype=torch.float64),
-                     log_evidence=torch.tensor(out["logev"], dtype=torch.float64),
-                     whitened_basis=torch.stack(out["basis"]), whitened_eigenvalues=eig,
-                     prior_covariance=prior_cov,
-                     prior_precision=torch.stack(out["m_inv"]) / a_t[:, None, None])
-    new = replace(sol, coefficients=coef, covariance=cov,
-                  stderr=torch.where(det, post.sqrt(), torch.full_like(post, math.inf)),
-                  determined=det, resolution=(1.0 - ratio).clamp(0.0, 1.0), lam=lam_t,
-                  lam_rel=lam_t / eig.mean(-1).clamp_min(1e-300),
-                  chi2_reduced=torch.tensor(out["chi2"], dtype=torch.float64),
-                  dof=torch.tensor(out["dof"], dtype=torch.float64))
-    new.bayes = new_bx
+    new = full_prior_solution(
+        sol, out,
+        bayes={"residual": res, "weighted_residual": wres,
+               "noise_scale": torch.tensor(out["s"], dtype=torch.float64),
+               "slope": torch.tensor(out["beta"], dtype=torch.float64)},
+        fields={"chi2_reduced": torch.tensor(out["chi2"], dtype=torch.float64),
+                "dof": torch.tensor(out["dof"], dtype=torch.float64)})
     info.update(used=True, slope=out["beta"], noise_scale=out["s"], scale=out["a"],
                 log_evidence=out["logev"], envelope_max=float(h.max()),
                 floored_fraction=float((h <= h.min() * (1 + 1e-9)).double().mean()))

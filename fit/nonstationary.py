@@ -44,7 +44,7 @@ from .sh import real_sh
 from .solve import RATIO_LIMIT, LinearSolution
 
 __all__ = ["NONSTATIONARY_FLOOR", "NONSTATIONARY_FILL", "envelope_prior_shape",
-           "solve_nonstationary"]
+           "solve_nonstationary", "full_prior_solution"]
 
 #: Floor of the envelope ``h(ω)`` as a fraction of its mean: no direction's prior variance is
 #: taken below 5% of the average (the isotropic fit's mean may be ~0 where a source hides).
@@ -185,6 +185,24 @@ def solve_nonstationary(sol: LinearSolution, floor: float = NONSTATIONARY_FLOOR
     if min(out["gain"]) <= 0.0:
         info["reason"] = "the isotropic prior has the higher evidence"
         return None, info
+    new = full_prior_solution(sol, out)
+    info["used"] = True
+    return new, info
+
+
+def full_prior_solution(sol: LinearSolution, out: dict, bayes: dict | None = None,
+                        fields: dict | None = None) -> LinearSolution:
+    """``sol`` with the posterior of a full (non-diagonal) prior, from per-channel lists.
+
+    ``out``: per channel ``coef`` ``(K,)``, ``cov`` ``(K, K)``, ``a`` (prior scale), ``m`` and
+    ``m_inv`` (the prior's shape ``M`` and its inverse: prior covariance ``a M``), ``lam``,
+    ``eig`` and ``basis`` (the whitened basis ``S V``, ``M = S Sᵀ``), ``logev``. Determined:
+    posterior over marginal prior variance ≤ :data:`RATIO_LIMIT`, as for the power law.
+    ``bayes``, ``fields``: further :class:`BayesExtras` and :class:`LinearSolution` fields.
+    Shared by :func:`solve_nonstationary` and
+    :func:`brdfcap.fit.joint_envelope.solve_joint_envelope`.
+    """
+    x = sol.coefficients
     dt, dev = x.dtype, x.device
     coef = torch.stack(out["coef"], -1).to(dt)
     cov = torch.stack(out["cov"]).to(dt)
@@ -196,15 +214,15 @@ def solve_nonstationary(sol: LinearSolution, floor: float = NONSTATIONARY_FLOOR
     det = ratio <= RATIO_LIMIT
     lam_t = torch.tensor(out["lam"], dtype=torch.float64, device=dev)
     eig = torch.stack(out["eig"])
-    new_bx = replace(bx, prior_variance=prior, posterior_variance=post, prior_scale=a_t,
+    new_bx = replace(sol.bayes, prior_variance=prior, posterior_variance=post, prior_scale=a_t,
                      log_evidence=torch.tensor(out["logev"], dtype=torch.float64),
                      whitened_basis=torch.stack(out["basis"]), whitened_eigenvalues=eig,
                      prior_covariance=prior_cov,
-                     prior_precision=torch.stack(out["m_inv"]) / a_t[:, None, None])
+                     prior_precision=torch.stack(out["m_inv"]) / a_t[:, None, None],
+                     **(bayes or {}))
     new = replace(sol, coefficients=coef, covariance=cov,
                   stderr=torch.where(det, post.sqrt(), torch.full_like(post, math.inf)),
                   determined=det, resolution=(1.0 - ratio).clamp(0.0, 1.0), lam=lam_t,
-                  lam_rel=lam_t / eig.mean(-1).clamp_min(1e-300))
+                  lam_rel=lam_t / eig.mean(-1).clamp_min(1e-300), **(fields or {}))
     new.bayes = new_bx
-    info["used"] = True
-    return new, info
+    return new

@@ -29,32 +29,13 @@ import numpy as np
 import torch
 from brdfcap.fit import inverse_lighting as il
 from brdfcap.fit.envmap import project_envmap
+from brdfcap.fit.joint_envelope import envelope_on_grid, gauss_grid
 from brdfcap.fit.sh import band_of_index, real_sh
 
 from brdfcap.testing import reference_dir
 from brdfcap.truth_matrix import BRDFS, rendered, score
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def gauss_grid(nth: int):
-    """Gauss-Legendre in cos θ × uniform φ: directions ``(G, 3)`` and weights ``(G,)``."""
-    mu, gw = np.polynomial.legendre.leggauss(nth)
-    nph = 2 * nth
-    phi = (np.arange(nph) + 0.5) * 2 * np.pi / nph
-    mm, pp = np.meshgrid(mu, phi, indexing="ij")
-    s = np.sqrt(1 - mm ** 2)
-    dirs = torch.tensor(np.stack([s * np.cos(pp), s * np.sin(pp), mm], -1).reshape(-1, 3))
-    wq = torch.tensor((gw[:, None] * np.full(nph, 2 * np.pi / nph)[None, :]).reshape(-1))
-    return dirs, wq
-
-
-def envelope(dirs, wq, coef, floor):
-    """``h``: channel mean of ``L̂_c(ω)²`` over its sphere mean, floored, mean 1."""
-    lhat = real_sh(dirs, math.isqrt(coef.shape[0]) - 1) @ coef
-    h = (lhat ** 2 / (lhat ** 2 * wq[:, None]).sum(0, keepdim=True) * 4 * math.pi).mean(-1)
-    h = h.clamp_min(floor * float((h * wq).sum() / (4 * math.pi)))
-    return h / float((h * wq).sum() / (4 * math.pi))
 
 
 def fit_channel(at, t, band_o, y, v, csc, betas, kr):
@@ -119,7 +100,7 @@ def run_one(a, data, lmax: int, rep: int):
     lo = math.isqrt(ko) - 1
     dirs, wq = gauss_grid(a.nth)
     h = torch.ones(dirs.shape[0], dtype=torch.float64) if a.flat else \
-        envelope(dirs, wq, stash["st"].coefficients, a.floor)
+        envelope_on_grid(dirs, wq, stash["st"].coefficients, a.floor)
     sw = h.sqrt() * wq
     t = torch.zeros(ko, ko, dtype=torch.float64)
     for s in range(0, dirs.shape[0], 1000):

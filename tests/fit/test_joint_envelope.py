@@ -48,8 +48,8 @@ def test_solved_band_form_is_the_data_space_posterior():
     assert info["used"] and new is not None
     beta, s, a = info["slope"][0], info["noise_scale"][0], info["scale"][0]
     # the same prior, built independently of the module's block algebra
-    dirs_g, w = je._gauss_grid(lo + lint + 2)
-    h = je._envelope(dirs_g, w, sol.coefficients, je.JOINT_FLOOR)
+    dirs_g, w = je.gauss_grid(lo + lint + 2)
+    h = je.envelope_on_grid(dirs_g, w, sol.coefficients, je.JOINT_FLOOR)
     y = real_sh(dirs_g, lo)
     t = y.T @ (y * (h.sqrt() * w)[:, None])
     t = 0.5 * (t + t.T)
