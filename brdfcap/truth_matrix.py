@@ -51,8 +51,8 @@ from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index
 
 __all__ = ["BRDFS", "Cell", "sphere_views", "render_texels", "load_probe", "rendered",
-           "score", "run_cell", "markdown_table", "ERROR_LIMIT", "COVERAGE_RANGE",
-           "RENDER_VERSION"]
+           "score", "cell_repetitions", "run_cell", "markdown_table", "ERROR_LIMIT",
+           "COVERAGE_RANGE", "RENDER_VERSION"]
 
 #: Criterion 1: relative band-norm error a determined band may have.
 ERROR_LIMIT = 0.10
@@ -257,26 +257,37 @@ def score(fit, truth: torch.Tensor, lmax: int) -> tuple[float, int, int, int, in
             lmax + 1 if measured is None else measured, lmax + 1 if truth_l is None else truth_l)
 
 
+def cell_repetitions(data: dict, views: int, lmax: int, reps: int = 2, *,
+                     rel_noise: float = 0.01, seed: int = 0):
+    """Yield one cell's samples with ``reps`` noisy draws of them, as :func:`run_cell` fits them.
+
+    ``views = 1`` uses view 0 of the render; Gaussian noise of σ = ``rel_noise`` × the mean per
+    channel, from the generator seeded ``seed·1000 + 17·lmax + views`` (each repetition draws
+    after the previous one). Yields ``(normal, reflected, view, radiance, variance)`` per
+    repetition (the variance is the noise model given to the fit).
+    """
+    sel = data["view"] < views
+    n, wo, view, b = (data[k][sel] for k in ("normal", "wo", "view", "radiance"))
+    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
+    sd = rel_noise * b.abs().mean(0)
+    var = (sd ** 2).expand_as(b).clone()
+    g = torch.Generator().manual_seed(seed * 1000 + 17 * lmax + views)
+    for _ in range(reps):
+        yield n, r, view, b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64), var
+
+
 def run_cell(data: dict, probe: str, name: str, views: int, lmax: int, *, reps: int = 2,
              rel_noise: float = 0.01, seed: int = 0, design: str = "exact") -> Cell:
-    """Fit one cell ``reps`` times with fresh Gaussian noise (σ = ``rel_noise`` × mean per channel).
+    """Fit one cell ``reps`` times with fresh Gaussian noise (:func:`cell_repetitions`).
 
-    ``views = 1`` uses view 0 of the render. The variance is given to the fit (a noise model).
     ``design``: the lighting fit's specular forward model (``fit_lighting``'s ``design``).
     """
     spec = BRDFS[name]
-    sel = data["view"] < views
-    n, wo, view, b = data["normal"][sel], data["wo"][sel], data["view"][sel], \
-        data["radiance"][sel]
-    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
     truth = project_envmap(data["probe"], lmax, quadrature="pixel")
-    sd = rel_noise * b.abs().mean(0)
-    var = (sd ** 2).expand_as(b).clone()
-    cell = Cell(probe, name, views, lmax, n_samples=int(n.shape[0]))
-    g = torch.Generator().manual_seed(seed * 1000 + 17 * lmax + views)
+    cell = Cell(probe, name, views, lmax, n_samples=int((data["view"] < views).sum()))
     t0 = time.perf_counter()
-    for _ in range(reps):
-        bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    for n, r, view, bn, var in cell_repetitions(data, views, lmax, reps, rel_noise=rel_noise,
+                                                seed=seed):
         fit = fit_lighting(n, bn, lmax, spec, reflected=None if spec.model == "lambertian"
                            else r, variance=var, view=view, design=design)
         worst, hits, tot, meas, tru = score(fit, truth, lmax)

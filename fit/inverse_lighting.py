@@ -1286,8 +1286,9 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     rows, ill, band_det, infl = band_statistics_bayes(sol, filt[: lrep + 1], eps, weak[:k],
                                                       hid)
     # the model the verdict judges: the joint prior's own residual where it is used (its
-    # omitted bands' conditional mean is part of its prediction), else the power law's
-    judged = joint_sol if joint_sol is not None and full is joint_sol else iso
+    # omitted bands' conditional mean is part of its prediction), else the power law's (the
+    # envelope branch above needs a term that does not dominate: never with the joint prior)
+    judged = iso if joint_sol is None else joint_sol
     if first is not None and first[0] is judged:  # same solution, same data and weights
         adequacy = first[1]
     else:
@@ -1348,7 +1349,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                          ("L = P_Lo[sqrt(h) z], z_lm ~ N(0, scale (l+1)^-slope): one prior for "
                           "the solved bands and the omitted ones to L_o (envelope h: the "
                           "structured solution's mean squared, floored; fit.joint_envelope)"
-                          if joint_sol is not None and full is joint_sol else
+                          if full is judged else
                           "Cov(L_lm, L_l'm') = scale * integral of h Y_lm Y_l'm' (envelope h: "
                           "the power-law fit's mean squared, floored; fit.nonstationary)"),
                  "envelope": envelope,

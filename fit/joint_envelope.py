@@ -71,7 +71,7 @@ def gauss_grid(nth: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def envelope_on_grid(dirs: torch.Tensor, w: torch.Tensor, coef: torch.Tensor, floor: float
-              ) -> torch.Tensor:
+                     ) -> torch.Tensor:
     """``h`` on the grid: channel mean of ``L̂_c²`` over its sphere mean, floored, mean 1."""
     lhat = real_sh(dirs, math.isqrt(coef.shape[0]) - 1) @ coef
     p = lhat ** 2
@@ -187,8 +187,9 @@ def solve_joint_envelope(sol: LinearSolution, rows: torch.Tensor, scale: torch.T
             zx = z @ xs.T  # A_o M_os (unscaled design)
             aq = torch.cholesky_solve(zx.T, lss).T  # A_o Q
             cond = z @ z.T - aq @ zx.T  # A_o (M_oo − Q M_so) A_oᵀ
-            eig_cache[key] = (mss, lss, aq, 0.5 * (cond + cond.T))
-        mss, lss, aq, cond = eig_cache[key]
+            linv = torch.linalg.solve_triangular(lss, eye, upper=False)
+            eig_cache[key] = (mss, lss, linv.T @ linv, aq, 0.5 * (cond + cond.T))
+        mss, lss, mss_inv, aq, cond = eig_cache[key]
         scl = sc if base is not None else 1.0
         a_eff = ac[:, :k] + scl * aq
         cov_e = (a * scl * scl) * cond
@@ -221,8 +222,7 @@ def solve_joint_envelope(sol: LinearSolution, rows: torch.Tensor, scale: torch.T
         out["s"].append(s)
         out["beta"].append(beta)
         out["m"].append(mss)
-        linv = torch.linalg.solve_triangular(lss, eye, upper=False)
-        out["m_inv"].append(linv.T @ linv)
+        out["m_inv"].append(mss_inv)
         out["logev"].append(-0.5 * m2)
     res = torch.zeros(b.shape[0], nch, dtype=torch.float64, device=b.device)
     wres = torch.zeros_like(res)

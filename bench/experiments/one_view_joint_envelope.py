@@ -33,7 +33,7 @@ from brdfcap.fit.joint_envelope import envelope_on_grid, gauss_grid
 from brdfcap.fit.sh import band_of_index, real_sh
 
 from brdfcap.testing import reference_dir
-from brdfcap.truth_matrix import BRDFS, rendered, score
+from brdfcap.truth_matrix import BRDFS, cell_repetitions, rendered, score
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -71,15 +71,9 @@ def fit_channel(at, t, band_o, y, v, csc, betas, kr):
 def run_one(a, data, lmax: int, rep: int):
     """Fit the cell's repetition ``rep`` as the matrix does, then the joint model's bands."""
     spec = BRDFS[a.brdf]
-    sel = data["view"] < 1
-    n, wo, view, b = (data[k][sel] for k in ("normal", "wo", "view", "radiance"))
-    r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
     truth = project_envmap(data["probe"], a.R, quadrature="pixel")
-    sd = 0.01 * b.abs().mean(0)
-    var = (sd ** 2).expand_as(b).clone()
-    g = torch.Generator().manual_seed(17 * lmax + 1)  # the matrix's seed, one view
-    for _ in range(rep + 1):
-        bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    # the matrix's noise draws for this cell, one view: repetition ``rep``
+    n, r, view, bn, var = list(cell_repetitions(data, 1, lmax, rep + 1))[-1]
     stash = {}
     orig = il.solve_structured
 

@@ -61,7 +61,7 @@ def matrix_cell(request, tmp_path_factory):
     """
     from brdfcap.fit import inverse_lighting as il
 
-    from brdfcap.truth_matrix import BRDFS, rendered
+    from brdfcap.truth_matrix import BRDFS, cell_repetitions, rendered
 
     pc = getattr(request.config, "cache", None)
     cache = Path(pc.mkdir("truth_matrix")) if pc is not None else \
@@ -69,14 +69,8 @@ def matrix_cell(request, tmp_path_factory):
 
     def fit(brdf: str, views: int, lmax: int, probe: str = "grace"):
         data = rendered(PROBES / f"{probe}.hdr", brdf, views=6, px=32, cache=cache)
-        sel = data["view"] < views
-        n, wo, v, b = (data[k][sel] for k in ("normal", "wo", "view", "radiance"))
-        r = 2 * (n * wo).sum(-1, keepdim=True) * n - wo
-        sd = 0.01 * b.abs().mean(0)
-        g = torch.Generator().manual_seed(17 * lmax + views)
-        bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
-        out = il.fit_lighting(n, bn, lmax, BRDFS[brdf], reflected=r,
-                              variance=(sd ** 2).expand_as(b).clone(), view=v)
+        n, r, v, bn, var = next(cell_repetitions(data, views, lmax, 1))
+        out = il.fit_lighting(n, bn, lmax, BRDFS[brdf], reflected=r, variance=var, view=v)
         return out, project_envmap(data["probe"], lmax, quadrature="pixel")
 
     return fit
