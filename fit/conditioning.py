@@ -784,7 +784,8 @@ def _lag1(res: torch.Tensor, group: torch.Tensor, used: torch.Tensor) -> tuple[f
 
 
 def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noise_known: bool,
-                   view: torch.Tensor | None = None) -> dict:
+                   view: torch.Tensor | None = None,
+                   noise_scale: torch.Tensor | None = None) -> dict:
     """Whether the fitted model explains the data, stated in plain language.
 
     With a noise model: χ²/ν per channel (``ν = N − tr H``) and its distance from 1 in units of
@@ -794,6 +795,12 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
     relative to the signal, and the residual skewness (positive: unmodelled highlights;
     negative: unmodelled shadows). When the residual is structured, intervals are widened by
     the AR(1) variance-inflation factor ``sqrt((1+ρ)/(1−ρ))`` (``widen`` in the result).
+
+    ``noise_scale`` (per channel): for a solve whose residual covariance is mostly its prior's
+    (the joint prior of :mod:`.joint_envelope`, where the omitted bands' lighting dominates every
+    sample), the white-noise scale its evidence needed on top of the noise model. χ² of such a
+    solve stays near 1 whatever the residual (the prior's scale absorbs it), so a noise scale
+    above ``CHI2_INADEQUATE`` is read as the excess instead.
 
     Returns
     -------
@@ -835,6 +842,11 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
                 causes.append(excess)
             else:
                 mild.append(excess)
+    if noise_known and noise_scale is not None and float(noise_scale.max()) > CHI2_INADEQUATE:
+        ok = False
+        causes.append(f"the residual needs white noise {float(noise_scale.max()):.3g}x the noise "
+                      "model's variance on top of the omitted bands' lighting (a lobe narrower "
+                      "than a pixel's spread of normals, a wrong BRDF, or noise underestimated)")
     structured = npair > 0 and math.isfinite(rho) and rho > max(0.2, 3.0 / math.sqrt(npair))
     widen = 1.0
     if structured:

@@ -1292,8 +1292,14 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     if first is not None and first[0] is judged:  # same solution, same data and weights
         adequacy = first[1]
     else:
-        adequacy = model_adequacy(judged, b_scan, scan(w), noise_known=noise_known, view=view)
+        adequacy = model_adequacy(judged, b_scan, scan(w), noise_known=noise_known, view=view,
+                                  noise_scale=None if joint_sol is None
+                                  else joint_sol.bayes.noise_scale)
     adequacy["truncation"] = truncation
+    if joint is not None and any(joint.get("noise_scale_at_bound", ())):
+        adequacy["likely_causes"].append(
+            "the joint prior's noise scale reached its searched maximum (10): the excess may be "
+            "larger, and the intervals, which carry that scale, too narrow")
     if truncation is not None:
         adequacy["verdict"] += (f" (with truncation noise: the lighting above L = {lint} that "
                                 f"each pixel's lobe passes, {truncation['samples_dominated']} "

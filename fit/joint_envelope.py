@@ -116,9 +116,12 @@ def solve_joint_envelope(sol: LinearSolution, rows: torch.Tensor, scale: torch.T
     the whitened basis ``S V`` (``M_ss = S Sᵀ``) of the effective Gram, and
     ``bayes.prior_covariance`` / ``prior_precision`` set, as :mod:`.nonstationary`'s; its
     residual is its own (``b − (A_s + A_o Q) x̂``, ``b``'s order; ``weighted_residual`` the
-    innovations ``Σ_e^{-1/2}`` of it, ``chi2_reduced`` their sum of squares over
-    ``N − Σ e/(e+λ)``), its split halves and unregularised fields ``sol``'s. ``info``: per channel
-    ``slope``, ``noise_scale``, ``scale`` and ``log_evidence``, the floor and ``L_o``.
+    innovations ``Σ_e^{-1/2}`` of it, ``chi2_reduced`` the residual's ``Σ_e⁻¹``-norm at
+    noise scale 1 — the noise model as given — over ``N − Σ e/(e+λ)``), its split halves and
+    unregularised fields ``sol``'s. ``info``: per channel
+    ``slope``, ``noise_scale`` (``noise_scale_at_bound``: at the searched grid's top, 10: the
+    residual exceeds what the prior and noise model allow), ``scale`` and ``log_evidence``, the
+    floor and ``L_o``.
     """
     x = sol.coefficients.to(torch.float64)
     k, nch = x.shape
@@ -213,7 +216,17 @@ def solve_joint_envelope(sol: LinearSolution, rows: torch.Tensor, scale: torch.T
         out["inn"].append(inn)
         gamma = float((e / (e + lam)).sum())  # effective number of parameters
         out["dof"].append(max(float(idx.numel()) - gamma, 1.0))
-        out["chi2"].append(float((inn * inn).sum()) / out["dof"][-1])
+        if s != 1.0:
+            # χ² against the noise model as given (s = 1), as every other solve reports it: the
+            # innovations above are white at the fitted s, so their χ² is ~1 by construction
+            # and would hide a residual 10x the noise model
+            c1 = (a * scl * scl) * cond
+            c1.diagonal().add_(vc)
+            inn1 = torch.linalg.solve_triangular(torch.linalg.cholesky(c1),
+                                                 (yc - a_eff @ xc)[:, None], upper=False)[:, 0]
+        else:
+            inn1 = inn
+        out["chi2"].append(float((inn1 * inn1).sum()) / out["dof"][-1])
         out["cov"].append((basis / (e + lam)) @ basis.T * s)
         out["basis"].append(basis)
         out["eig"].append(e)
@@ -235,7 +248,9 @@ def solve_joint_envelope(sol: LinearSolution, rows: torch.Tensor, scale: torch.T
                "slope": torch.tensor(out["beta"], dtype=torch.float64)},
         fields={"chi2_reduced": torch.tensor(out["chi2"], dtype=torch.float64),
                 "dof": torch.tensor(out["dof"], dtype=torch.float64)})
+    s_max = 10.0 ** float(_LOG_NOISE.max())
     info.update(used=True, slope=out["beta"], noise_scale=out["s"], scale=out["a"],
+                noise_scale_at_bound=[v >= s_max * (1 - 1e-9) for v in out["s"]],
                 log_evidence=out["logev"], envelope_max=float(h.max()),
                 floored_fraction=float((h <= h.min() * (1 + 1e-9)).double().mean()))
     return new, info
