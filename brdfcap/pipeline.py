@@ -213,6 +213,10 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
         cap = load_capture(capture_dir)
     with stage("reconstruct"):
         geom, samples, warnings = reconstruct_capture(cap, opts)
+        if (Path(capture_dir) / "ground_truth.json").is_file():
+            # a simulated capture: say where its render missed its own tolerance
+            from brdfcap.capture.simulate import render_accuracy_warnings
+            warnings += render_accuracy_warnings(capture_dir)
     with stage("fit"):
         fit = fit_capture(cap, samples, opts)
     with stage("report"):

@@ -34,7 +34,7 @@ Environment lighting (:func:`render_environment`)
     **Batches** (``method="auto"``, the default; ``docs/simulator.md#renderer-speed``) use two
     faster rules where they apply, same integrand, different quadrature:
 
-    * **Cell quadrature** (specular lobes wider than 4 texels, ≥ 256 pixels, ``rel_tol ≥
+    * **Cell quadrature** (specular lobes wider than 2 texels, ≥ 256 pixels, ``rel_tol ≥
       1e-3``, a bilinear probe with a texel ≥ 10× its mean; smooth lighting keeps the lobe
       quadrature, which converges fast there): a pyramid of the probe in solid-angle-correct
       form — level 0 the texels' ``k × k`` sub-cells, each coarser level 2 × 2 cells — storing
@@ -113,7 +113,7 @@ INTERPOLATIONS = ("bilinear", "cubic")
 #: Integration methods of :func:`render_environment` (its ``method`` argument).
 METHODS = ("auto", "cells", "quadrature")
 _CELLS_MIN_PIXELS = 256     # "auto": cell quadrature from this many pixels on ...
-_CELLS_MIN_WIDTH = 4.0      # ... for lobes whose median radius spans this many texels
+_CELLS_MIN_WIDTH = 2.0      # ... for lobes whose median radius spans this many texels
 _CELLS_MIN_TOL = 1e-3       # ... at tolerances from this one up (finer: per-pixel rules)
 _MAP_MIN_TOL = 1e-4         # irradiance map from this tolerance up
 
@@ -372,7 +372,7 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
     method : str
         ``"auto"`` (default): the irradiance map for the Lambertian term from 2048 pixels
         and ``rel_tol ≥ 1e-4`` on, cell quadrature for a specular lobe whose median radius
-        spans ≥ 4 texels from 256 pixels and ``rel_tol ≥ 1e-3`` on under a bilinear probe with
+        spans ≥ 2 texels from 256 pixels and ``rel_tol ≥ 1e-3`` on under a bilinear probe with
         a texel ≥ 10× its mean (sun-like sources), the per-pixel rules otherwise;
         ``"cells"``: cell quadrature for every sampled lobe; ``"quadrature"``: the
         per-pixel texel and lobe quadratures only (module doc).

@@ -49,7 +49,7 @@ from .reference import LatLongProbe, irradiance_quadrature, render_environment, 
 from .types import CameraModel, NoiseModel
 
 __all__ = ["Scene", "load_scene", "simulate", "look_at", "builtin_scene_path", "view_poses",
-           "RENDERERS", "SCENE_KEYS", "HIGH_LMAX"]
+           "render_accuracy_warnings", "RENDERERS", "SCENE_KEYS", "HIGH_LMAX"]
 
 RENDERERS = ("reference", "sh")
 #: Band to which ``ground_truth.json`` records the true SH projection of the lighting.
@@ -750,6 +750,35 @@ def _interreflection_policy(scene: Scene, mesh) -> tuple[dict | None, str]:
              "min_added": 0.0},
             "one bounce: Lambertian radiance of the hit points from their direct lighting "
             "(brdfcap.capture.interreflection)")
+
+
+def render_accuracy_warnings(capture: str | Path) -> list[str]:
+    """One line per rendered term whose measured error missed the scene's tolerance.
+
+    Reads ``ground_truth.json: renderer.measured`` of the capture ``capture`` (what the
+    reference renderer measured of its own quadratures, ``docs/simulator.md``, "Measured, not
+    assumed"); empty when every term converged or the SH renderer was used.
+    """
+    gt = Path(capture) / "ground_truth.json"
+    if not gt.is_file():
+        return []
+    try:
+        rec = json.loads(gt.read_text()).get("renderer", {})
+        tol = float(rec.get("rel_tol", math.nan))
+        terms = dict(rec.get("measured") or {})
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        return [f"{gt}: not read ({exc}); the render's accuracy is unknown (re-run "
+                f"brdfcap simulate)"]
+    out = []
+    for name, t in terms.items():
+        if not isinstance(t, dict) or t.get("converged", True):
+            continue
+        out.append(f"{gt}: renderer.measured.{name}: the {name} term ({t.get('method')}) "
+                   f"reached {100 * float(t.get('max_rel_err', math.nan)):.3g}% per pixel, not "
+                   f"the scene's rel_tol {100 * tol:.3g}%: the images differ from the exact "
+                   f"integral by up to about that much (raise [render] max_samples, give a "
+                   f"higher-resolution probe, or set rel_tol to what was reached)")
+    return out
 
 
 def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:

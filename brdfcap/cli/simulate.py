@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from brdfcap.capture.simulate import simulate
+from brdfcap.capture.simulate import render_accuracy_warnings, simulate
 from brdfcap.core.errors import BrdfcapError
 
 from .common import CliState, fail
@@ -25,3 +25,5 @@ def simulate_cmd(obj: CliState, scene: Path, out_dir: Path) -> None:
     except BrdfcapError as exc:
         fail(exc, obj.debug)
     click.echo(f"wrote capture {cap}")
+    for line in render_accuracy_warnings(cap):
+        click.echo(f"warning: {line}", err=True)

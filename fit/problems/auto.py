@@ -2,6 +2,8 @@
 
 * environment lighting: Lambertian SH lighting (R&H 2001 eq. 7-9), with ``[material].albedo``
   when known, else albedo × lighting (:func:`brdfcap.fit.lighting.fit_lighting_lambertian`);
+  where ``[material].model`` names another BRDF (Phong, microfacet), SH lighting with that
+  BRDF known (problem ``lighting``: a Lambertian model of a glossy surface is the wrong model);
 * directional lights on a normal map (DiLiGenT layout): the per-pixel Lambertian + Phong
   measurement (problem ``brdf-map``);
 * directional lights on a mesh: the Lambertian albedo per channel
@@ -14,11 +16,12 @@ import torch
 
 from brdfcap.core.errors import FitError
 
+from ..brdf_models import BRDFSpec
 from ..lighting import fit_albedo_directional, fit_lighting_lambertian
 from ..records import conditioning_json, lighting_json
 from ..render import lambertian_radiance_directional, lambertian_radiance_sh
 from ..result import Estimate, FitResult
-from .base import FitOptions, Known, Problem, lighting_estimate, register_problem
+from .base import FitOptions, Known, Problem, lighting_estimate, need_reflectance, register_problem
 from .brdf_map import problem_brdf_map
 
 __all__ = ["problem_auto", "lambertian_lighting", "lambertian_albedo"]
@@ -31,6 +34,8 @@ def lambertian_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
         raise FitError(f"{len(samples)} samples cannot determine {k} coefficients per channel "
                        f"(lmax = {opts.lmax}); lower --lmax or add views", known.source)
     alb_known = known.albedo
+    if alb_known is not None:
+        need_reflectance(BRDFSpec("lambertian", kd=alb_known), known)
     fit = fit_lighting_lambertian(samples.normal, samples.radiance, opts.lmax,
                                   variance=samples.variance, albedo=alb_known,
                                   noise_model=known.noise, rule=opts.rule,
@@ -66,6 +71,13 @@ def lambertian_albedo(samples, known: Known, opts: FitOptions) -> FitResult:
 def problem_auto(samples, known: Known, opts: FitOptions) -> FitResult:
     """Run the default measurement for this kind of capture (module docstring)."""
     if known.lighting_kind == "environment":
+        model = (known.material or {}).get("model", "lambertian")
+        if model != "lambertian":
+            # the capture states a glossy BRDF: a Lambertian fit would be the wrong model
+            from .lighting import problem_lighting
+            res = problem_lighting(samples, known, opts)
+            res.problem = "auto"
+            return res
         return lambertian_lighting(samples, known, opts)
     if known.geometry_source == "normal_map" and samples.wi is not None:
         res = problem_brdf_map(samples, known, opts)

@@ -27,7 +27,8 @@ from ..result import Estimate, FitResult
 
 __all__ = ["FitOptions", "Known", "Problem", "PROBLEMS", "register_problem", "get_problem",
            "check_lmax",
-           "brdf_from_material", "need_environment", "need_known_lighting", "lighting_estimate",
+           "brdf_from_material", "need_environment", "need_reflectance", "need_known_lighting",
+           "lighting_estimate",
            "material_estimates"]
 
 
@@ -165,6 +166,25 @@ def brdf_from_material(material: dict | None, model: str | None = None) -> BRDFS
     return BRDFSpec(m, kd=_rgb(material.get("albedo", 1.0)), ks=_rgb(material.get("ks", 0.0)),
                     s=float(material.get("s", 0.0)), sigma=float(material.get("sigma", 0.0)),
                     f0=_rgb(material.get("f0", 0.0)))
+
+
+def need_reflectance(spec: BRDFSpec, known: Known) -> None:
+    """Raise (one line, naming the keys) where the known BRDF reflects nothing in a channel.
+
+    Such a channel's radiance carries no trace of the lighting, so no lighting coefficient of
+    it can be measured (every design row is 0).
+    """
+    kd, ss = torch.broadcast_tensors(spec.kd.reshape(-1).to(torch.float64),
+                                     spec.specular_scale.reshape(-1).to(torch.float64))
+    dead = torch.nonzero((kd == 0) & (ss == 0)).flatten().tolist()
+    if dead:
+        names = ", ".join("RGB"[c] if kd.numel() == 3 else str(c) for c in dead)
+        keys = "albedo" if spec.model == "lambertian" else \
+            f"albedo and {'ks' if spec.model in ('phong', 'mirror') else 'f0'}"
+        raise FitError(f"[material] {keys} {'is' if spec.model == 'lambertian' else 'are'} 0 "
+                       f"in channel {names}: a surface that reflects "
+                       f"nothing there carries no trace of the lighting; give the material's "
+                       f"reflectance (model {spec.model!r})", known.source)
 
 
 def need_environment(known: Known) -> None:

@@ -23,6 +23,7 @@ from .base import (
     lighting_estimate,
     material_estimates,
     need_environment,
+    need_reflectance,
     register_problem,
 )
 
@@ -36,6 +37,7 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
     given = spec is not None
     if spec is None:  # no [material]: the albedo is not known, only albedo x lighting is
         spec = BRDFSpec("lambertian", kd=[1.0, 1.0, 1.0])
+    need_reflectance(spec, known)
     fit = fit_lighting(samples.normal, samples.radiance, opts.lmax, spec,
                        reflected=samples.reflected, variance=samples.variance, rule=opts.rule,
                        noise_model=known.noise, view=samples.view, design=opts.design,

@@ -71,3 +71,84 @@ def test_sh_renderer_default_only_where_exact(tmp_path):
         'model = "lambertian"', 'model = "phong"\nks = [0.2, 0.2, 0.2]\ns = 10.0'))
     sc = load_scene(tmp_path / "c.toml")
     assert sc.renderer == "sh" and not sc.renderer_exact
+
+
+UNCONVERGED = """
+name = "a glossy sphere rendered with too few lobe nodes"
+[geometry]
+shape = "sphere"
+[material]
+model = "phong"
+albedo = [0.0, 0.0, 0.0]
+ks = [0.6, 0.6, 0.6]
+s = 200.0
+[lighting]
+kind = "environment"
+sh = "grace-rh2001"
+[camera]
+width = 8
+height = 8
+[views]
+count = 1
+[render]
+rel_tol = 1e-5
+max_samples = 128
+"""
+
+
+def test_a_render_that_missed_its_tolerance_is_said_by_simulate_and_run(tmp_path):
+    """``renderer.measured.specular.converged`` false (1e-5 asked, 128 lobe nodes allowed):
+    ``brdfcap simulate`` prints one warning line naming the file, the key, the error reached
+    and the fix, and a run on the capture lists it among its warnings. An unreadable
+    ``ground_truth.json`` is one line too, never an exception.
+    """
+    from brdfcap.capture.simulate import render_accuracy_warnings
+    from click.testing import CliRunner
+
+    from brdfcap.cli import main
+
+    (tmp_path / "s.toml").write_text(UNCONVERGED)
+    res = CliRunner().invoke(main, ["simulate", str(tmp_path / "s.toml"), str(tmp_path / "cap")])
+    assert res.exit_code == 0, res.output
+    gt = json.loads((tmp_path / "cap" / "ground_truth.json").read_text())
+    spec = gt["renderer"]["measured"]["specular"]
+    assert not spec["converged"] and spec["max_rel_err"] > 1e-5
+    lines = [ln for ln in res.output.splitlines() if ln.startswith("warning:")]
+    assert len(lines) == 1, res.output
+    assert "ground_truth.json: renderer.measured.specular" in lines[0]
+    assert "max_samples" in lines[0] and "rel_tol 0.001%" in lines[0]
+    assert render_accuracy_warnings(tmp_path / "cap") == [lines[0][len("warning: "):]]
+    # a run on it carries the line
+    from brdfcap.pipeline import run_capture
+    out = run_capture(tmp_path / "cap", tmp_path / "out")
+    assert any("renderer.measured.specular" in w for w in out.warnings)
+    # no ground truth: nothing; a corrupt one: one line
+    assert render_accuracy_warnings(tmp_path) == []
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "ground_truth.json").write_text("{not json")
+    (bad,) = render_accuracy_warnings(tmp_path / "bad")
+    assert "ground_truth.json: not read" in bad
+
+
+def test_a_material_that_reflects_nothing_is_one_line(tmp_path):
+    """``[material]`` albedo and ks 0 in a channel: the lighting fit has nothing to invert
+    (every design row 0). Was LAPACK's "Parameter 6 was incorrect" as an internal error from
+    the default problem; now one line naming the file and the keys, for ``auto`` (Lambertian
+    albedo 0) and for the glossy model (which ``auto`` now runs as problem ``lighting``).
+    """
+    from brdfcap.core.errors import BrdfcapError
+    from brdfcap.pipeline import RunOptions, run_capture
+
+    (tmp_path / "s.toml").write_text(UNCONVERGED.replace("rel_tol = 1e-5", "rel_tol = 1e-2"))
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    toml = (cap / "capture.toml").read_text()
+    (cap / "capture.toml").write_text(toml.replace("ks = [0.6, 0.6, 0.6]", "ks = [0.0, 0.6, 0.6]"))
+    for problem in ("auto", "lighting"):
+        with pytest.raises(BrdfcapError, match=r"capture.toml: \[material\] albedo and ks are 0 "
+                                               r"in channel R"):
+            run_capture(cap, tmp_path / problem, RunOptions(problem=problem, lmax=2))
+        assert not (tmp_path / problem / "results.json").exists()
+    lamb = toml.replace('model = "phong"', 'model = "lambertian"')
+    (cap / "capture.toml").write_text(lamb)
+    with pytest.raises(BrdfcapError, match=r"\[material\] albedo is 0 in channel R, G, B"):
+        run_capture(cap, tmp_path / "lamb", RunOptions(lmax=2))
