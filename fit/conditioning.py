@@ -807,7 +807,10 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
     dict
         ``adequate`` (bool), ``verdict`` (one sentence), ``likely_causes`` (list), ``chi2_reduced``
         (per channel, or ``None`` without a noise model), ``chi2_sigma``, ``residual_rel_rms``,
-        ``residual_autocorrelation``, ``residual_skewness``, ``per_view`` and ``widen``.
+        ``residual_autocorrelation``, ``residual_skewness``, ``per_view``, ``widen`` and
+        ``notes`` (a residual smaller than the noise model, 3 sigma and chi2/nu below 1/1.5,
+        or anti-correlated between neighbours: said in the verdict, not a missing effect, so
+        neither inadequate nor in ``likely_causes``).
     """
     bx = sol.bayes
     res = bx.weighted_residual
@@ -847,6 +850,17 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
         causes.append(f"the residual needs white noise {float(noise_scale.max()):.3g}x the noise "
                       "model's variance on top of the omitted bands' lighting (a lobe narrower "
                       "than a pixel's spread of normals, a wrong BRDF, or noise underestimated)")
+    # a residual *smaller* than the noise model, or anti-correlated between neighbours: not a
+    # missing effect (adequate), but the noise model or the model's freedom is off — said
+    deficit = []
+    if noise_known and min(chi_sig) < -3.0 and min(chi2) < 1.0 / CHI2_INADEQUATE:
+        deficit.append(f"residual smaller than the noise model allows (chi2/nu down to "
+                       f"{min(chi2):.3g}, {-min(chi_sig):.2g} sigma below 1): the noise model "
+                       f"overstates the noise, or the model has the freedom to fit part of it")
+    if npair > 0 and math.isfinite(rho) and rho < -max(0.2, 3.0 / math.sqrt(npair)):
+        deficit.append(f"residual anti-correlated between neighbouring pixels (lag-1 "
+                       f"autocorrelation {rho:.2f}): the model's residual covariance has "
+                       f"structure the data do not")
     structured = npair > 0 and math.isfinite(rho) and rho > max(0.2, 3.0 / math.sqrt(npair))
     widen = 1.0
     if structured:
@@ -867,6 +881,11 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
         verdict = ("the model explains the data up to a small excess over the noise model "
                    "(no structure in the residual); intervals inflated accordingly")
         causes = mild
+    elif ok and deficit:
+        verdict = ("the model explains the data (no excess over the noise model, no "
+                   "structure in the residual), but " + "; and ".join(deficit) +
+                   "; intervals that rest on the noise model may be wider, and ones a prior "
+                   "sets less reliable, than they look")
     elif ok:
         verdict = ("the model explains the data: " + (
             "chi2/nu consistent with 1 and " if noise_known else "") +
@@ -881,4 +900,4 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
             "residual_rel_rms": rel_rms.tolist(),
             "residual_autocorrelation": None if not math.isfinite(rho) else rho,
             "residual_skewness": None if not math.isfinite(skew) else skew,
-            "per_view": per_view, "widen": widen}
+            "per_view": per_view, "widen": widen, "notes": deficit}

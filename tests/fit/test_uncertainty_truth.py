@@ -271,3 +271,26 @@ def test_glossy_sphere_reference_renderer_no_determined_band_off():
     err = _band_errors(f.coefficients, project_envmap(img, 8, quadrature="pixel"), 8)
     assert all(err[r_["l"]] <= 0.10 for r_ in f.bands if r_["determined"]), (err, f.bands)
     assert not f.adequacy["adequate"] and f.adequacy["likely_causes"]
+
+
+def test_a_residual_smaller_than_the_noise_model_is_said_not_called_inadequate():
+    """A noise model that overstates the noise 3x in s.d. (χ²/ν ~ 0.11): the verdict says the
+    residual is smaller than the noise model allows (a note, not a missing effect: still
+    adequate, no likely cause that would change the fit's bandwidth); the same data with the
+    true variance have no such note.
+    """
+    g = torch.Generator().manual_seed(8)
+    light = torch.nn.functional.normalize(torch.tensor([0.2, 0.3, 0.9], dtype=torch.float64),
+                                          dim=0)
+    n = _scan(unit(3000, g, hemisphere=True))
+    b = (0.4 * (n @ light) + 0.6)[:, None].expand(-1, 3).clone()  # band-limited to l = 1
+    sd = 0.005 * float(b.mean())
+    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    spec = BRDFSpec("lambertian", kd=[1.0, 1.0, 1.0])
+    over = fit_lighting(n, bn, 2, spec, variance=torch.full_like(b, 9 * sd ** 2)).adequacy
+    assert over["adequate"] and not over["likely_causes"], over
+    assert max(over["chi2_reduced"]) < 0.2
+    assert over["notes"] and "smaller than the noise model" in over["verdict"]
+    true = fit_lighting(n, bn, 2, spec, variance=torch.full_like(b, sd ** 2)).adequacy
+    assert true["adequate"] and not true["notes"], true
+    assert "explains the data: chi2/nu consistent with 1" in true["verdict"]
