@@ -1374,8 +1374,8 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
 
 def _scale_fixing_text(spec: BRDFSpec) -> str:
     """Say how the lighting's absolute scale is fixed, with the known BRDF's parameters."""
-    given = "; ".join(f"{k} " + ", ".join(f"{x:.4g}" for x in (v if isinstance(v, list)
-                                                               else [v]))
+    given = "; ".join(f"{k} " + ", ".join(f"{x:.4g}" if isinstance(x, (int, float)) else str(x)
+                                          for x in (v if isinstance(v, list) else [v]))
                       for k, v in spec.parameters().items())
     return (f"BRDF known ({spec.model}: {given}): the absolute scale of the lighting follows "
             f"from the BRDF's scale")
