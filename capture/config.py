@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import tomllib
+from brdfcap.fit.brdf.microfacet import FRESNEL_MODELS
 from brdfcap.fit.brdf_models import BRDF_MODELS
 
 from brdfcap.core.errors import CaptureError
@@ -50,7 +51,7 @@ KNOWN_KEYS: dict[str, set[str]] = {
     "lighting": {"kind", "coefficients", "probe", "probe_lmax", "sources"},
     "images": {"file", "world_to_camera", "exposure", "light", "raw", "mask", "correspondences"},
     "noise": {"read", "gain", "relative"},
-    "material": {"model", "albedo", "ks", "s", "sigma", "f0"},
+    "material": {"model", "albedo", "ks", "s", "sigma", "f0", "fresnel", "eta", "k"},
 }
 
 
@@ -122,9 +123,28 @@ def _parse_material(mat: dict, path: Path) -> Material:
            for k in ("albedo", "ks", "f0")}
     s = _number(mat, "s", "material.", path, low=0.0)
     sigma = _number(mat, "sigma", "material.", path, low=0.0, low_open=True)
+    # microfacet Fresnel (fit.brdf.microfacet): the model, and the index for the exact ones
+    fresnel = _get(mat, "fresnel", "material.", path, (str,), False, None)
+    if fresnel is not None:
+        if model not in ("beckmann", "ggx"):
+            raise CaptureError(f"key 'material.fresnel' applies to model 'beckmann' or 'ggx', "
+                               f"not {model!r}: remove it", path)
+        if fresnel not in FRESNEL_MODELS:
+            raise CaptureError(f"key 'material.fresnel' must be one of {FRESNEL_MODELS}, got "
+                               f"{fresnel!r}", path)
+    idx = {}
+    for k in ("eta", "k"):
+        v = mat.get(k)
+        if isinstance(v, list) and len(v) == 1:  # one value for every channel
+            v = v[0]
+        idx[k] = None if k not in mat else _rgb(v, f"material.{k}", path)
+    if idx["eta"] is not None and min(idx["eta"]) <= 0.0:
+        raise CaptureError(f"key 'material.eta' must be > 0 in every channel, got "
+                           f"{mat['eta']!r}", path)
     return Material(model=model, albedo=col["albedo"], ks=col["ks"], f0=col["f0"],
                     s=None if s is None else float(s),
-                    sigma=None if sigma is None else float(sigma))
+                    sigma=None if sigma is None else float(sigma),
+                    fresnel=fresnel, eta=idx["eta"], k=idx["k"])
 
 
 def _parse_lighting(tab: dict, root: Path, path: Path) -> KnownLighting:

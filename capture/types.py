@@ -148,11 +148,16 @@ class Material:
     s: float | None = None
     sigma: float | None = None
     f0: RGB | None = None
+    #: microfacet Fresnel model (``schlick``, ``none``, ``dielectric``, ``conductor``) and the
+    #: complex index ``eta + i k`` of the exact ones (Beckmann, GGX)
+    fresnel: str | None = None
+    eta: RGB | None = None
+    k: RGB | None = None
 
     def table(self) -> dict:
         """Return the keys that were given, as a ``[material]`` table (RGB as lists)."""
         out: dict = {"model": self.model}
-        for k in ("albedo", "ks", "s", "sigma", "f0"):
+        for k in ("albedo", "ks", "s", "sigma", "f0", "fresnel", "eta", "k"):
             v = getattr(self, k)
             if v is not None:
                 out[k] = list(v) if isinstance(v, tuple) else v

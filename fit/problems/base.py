@@ -163,9 +163,12 @@ def brdf_from_material(material: dict | None, model: str | None = None) -> BRDFS
     m = model or material.get("model", "lambertian")
     if m not in BRDF_MODELS:
         raise FitError(f"unknown BRDF model {m!r}; valid: {BRDF_MODELS}")
+    # the microfacet Fresnel of [material] (fresnel, eta, k) where the model has them
+    extra = {k: material[k] for k in ("fresnel", "eta", "k")
+             if material.get(k) is not None and m in ("beckmann", "ggx")}
     return BRDFSpec(m, kd=_rgb(material.get("albedo", 1.0)), ks=_rgb(material.get("ks", 0.0)),
                     s=float(material.get("s", 0.0)), sigma=float(material.get("sigma", 0.0)),
-                    f0=_rgb(material.get("f0", 0.0)))
+                    f0=_rgb(material.get("f0", 0.0)), extra=extra)
 
 
 def need_reflectance(spec: BRDFSpec, known: Known) -> None:

@@ -52,3 +52,22 @@ def test_auto_fits_the_stated_glossy_brdf(tmp_path, model):
         # the lighting's DC, recovered with the stated BRDF, within 5% of the truth (G)
         l00 = float(out.lighting.coefficients[0, 1])
         assert l00 == pytest.approx(truth[0][1], rel=0.05)
+
+
+def test_a_conductor_fresnel_is_fitted_with_it(tmp_path):
+    """A Beckmann sphere with a conductor Fresnel (``eta + i k``, what gold-like metals have):
+    the capture states it, the fit uses it, and the lighting's DC is the truth's to 1%. Before,
+    ``fresnel``/``eta``/``k`` were ignored with a warning and the fit assumed Schlick with
+    ``f0 = 0``: no specular at all.
+    """
+    text = SCENE.format(model="beckmann").replace(
+        "f0 = [0.5, 0.5, 0.5]", 'fresnel = "conductor"\neta = [0.2, 0.9, 1.1]\nk = [3.9, 2.4, 2.2]')
+    (tmp_path / "s.toml").write_text(text)
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    truth = json.loads((cap / "ground_truth.json").read_text())["lighting"]["coefficients"]
+    out = run_capture(cap, tmp_path / "out", RunOptions(lmax=2))
+    assert not [w for w in out.warnings if "unknown key" in w], out.warnings
+    res = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert res["brdf"]["parameters"]["fresnel"] == "conductor"
+    for c in range(3):
+        assert float(out.lighting.coefficients[0, c]) == pytest.approx(truth[0][c], rel=0.01)

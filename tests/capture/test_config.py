@@ -167,3 +167,30 @@ def test_run_names_a_capture_toml_directory(tmp_path):
     res = CliRunner().invoke(main, ["run", str(tmp_path / "cap"), "--out", str(tmp_path / "o")])
     assert res.exit_code == 1 and "Traceback" not in res.output
     assert "capture.toml" in res.output and "not a regular file" in res.output
+
+
+def test_microfacet_fresnel_keys_are_typed_and_checked(tmp_path):
+    """``fresnel``, ``eta``, ``k`` of a Beckmann/GGX ``[material]`` (what ``brdfcap simulate``
+    writes) are read — they were "unknown key ignored", so the fit used Schlick with ``f0``
+    whatever the surface's Fresnel — and bad values are one line each.
+    """
+    cond = BASE.replace('model = "microfacet"', 'model = "beckmann"').replace(
+        "f0 = 0.04", 'fresnel = "conductor"\neta = [0.2, 0.9, 1.1]\nk = [3.9]')
+    cfg = load_config(_write(tmp_path, cond))
+    assert not [w for w in cfg.warnings if "unknown key" in w], cfg.warnings
+    m = cfg.material
+    assert (m.fresnel, m.eta, m.k) == ("conductor", (0.2, 0.9, 1.1), (3.9, 3.9, 3.9))
+    assert m.table()["fresnel"] == "conductor" and m.table()["k"] == [3.9, 3.9, 3.9]
+    from brdfcap.fit.problems.base import brdf_from_material
+    spec = brdf_from_material(m.table())
+    assert spec.brdf.fresnel == "conductor"
+    assert float(spec.specular_scale[0]) > 0.9  # |F(0)| of eta + ik = 0.2 + 3.9i
+    for old, new, says in [('fresnel = "conductor"', 'fresnel = "metal"', "must be one of"),
+                           ("eta = [0.2, 0.9, 1.1]", "eta = 0.0", "must be > 0"),
+                           ("k = [3.9]", "k = [1.0, nan, 1.0]", "material.k")]:
+        msg = _one_line_error(tmp_path, cond.replace(old, new), "material.")
+        assert says in msg, msg
+    phong = BASE.replace('model = "microfacet"', 'model = "phong"').replace(
+        "f0 = 0.04", 'fresnel = "schlick"')
+    assert "applies to model 'beckmann' or 'ggx'" in _one_line_error(tmp_path, phong,
+                                                                      "material.fresnel")
