@@ -42,7 +42,8 @@ __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
            "weak_prior_variance", "band_prior_weakening", "MEASURED_BAND_GAMMA",
            "hidden_source", "HIDDEN_SOURCE_LMAX", "ZERO_BAND_LIMIT", "band_data_only_covariance",
-           "zero_band_bound", "band_statistics_bayes", "model_adequacy", "suggest_lmax",
+           "zero_band_bound", "band_statistics_bayes", "model_adequacy", "residual_adequacy",
+           "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
 
@@ -812,15 +813,59 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
         or anti-correlated between neighbours: said in the verdict, not a missing effect, so
         neither inadequate nor in ``likely_causes``).
     """
-    bx = sol.bayes
-    res = bx.weighted_residual
+    return _adequacy(sol.bayes.residual, sol.bayes.weighted_residual, sol.chi2_reduced, sol.dof,
+                     b, w, noise_known=noise_known, view=view, noise_scale=noise_scale)
+
+
+def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tensor | None, *,
+                      view: torch.Tensor | None = None, n_params: int = 0) -> dict:
+    """:func:`model_adequacy` of any fit from its prediction: for problems without their own.
+
+    ``b``, ``pred`` ``(N, C)`` measured and re-rendered radiance in the samples' scan order;
+    ``variance`` ``(N, C)`` the noise model's (``None``: no noise model, so no χ², only the
+    residual's structure); ``n_params``: the fit's number of free parameters (``ν = N − p``).
+    """
+    res = (b - pred).to(torch.float64)
+    ok = torch.isfinite(res).all(-1)
+    noise_known = variance is not None
+    if noise_known:
+        var = variance.to(res)
+        ok = ok & (var > 0).all(-1) & torch.isfinite(var).all(-1)
+        w = torch.where(ok[:, None], 1.0 / var.clamp_min(1e-300), torch.zeros_like(var))
+    else:
+        w = ok[:, None].to(res).expand_as(res).clone()
+    res = torch.where(ok[:, None], res, torch.zeros_like(res))
+    if noise_known:
+        wres = res * w.sqrt()
+    else:  # unit-variance residual: its structure, not its size, is judged
+        wres = res / res[ok].std(0).clamp_min(1e-300) if int(ok.sum()) > 1 else res
+    dof = torch.full((res.shape[1],), float(max(int(ok.sum()) - n_params, 1)),
+                     dtype=torch.float64, device=res.device)
+    chi2 = (wres ** 2).sum(0) / dof
+    out = _adequacy(res, wres, chi2, dof, b.to(res), w, noise_known=noise_known, view=view,
+                    noise_scale=None, applied=False)
+    out["source"] = "the fit's prediction (fit.conditioning.residual_adequacy)"
+    out["widen_applied"] = False
+    return out
+
+
+def _adequacy(resid: torch.Tensor, wres: torch.Tensor, chi2_t: torch.Tensor, dof_t: torch.Tensor,
+              b: torch.Tensor, w: torch.Tensor, *, noise_known: bool,
+              view: torch.Tensor | None, noise_scale: torch.Tensor | None,
+              applied: bool = True) -> dict:
+    """Judge a residual, its whitened form, χ² and ν (the body of :func:`model_adequacy`).
+
+    ``applied``: the caller widens the intervals by what is found (a fit judged after the fact,
+    :func:`residual_adequacy`, does not: the wording says so).
+    """
+    res = wres
     used = (w > 0).all(-1) & torch.isfinite(b).all(-1)
     n = res.shape[0]
     group = view.to(res.device).long() if view is not None else torch.zeros(n, dtype=torch.long)
     r1 = res.sum(-1)
     rho, npair = _lag1(r1, group, used)
     bu = b[used].abs().mean(0).clamp_min(1e-300)
-    rel_rms = (bx.residual[used] ** 2).mean(0).sqrt() / bu
+    rel_rms = (resid[used] ** 2).mean(0).sqrt() / bu
     ru = r1[used]
     skew = float(((ru - ru.mean()) ** 3).mean() / ru.var().clamp_min(1e-300) ** 1.5) \
         if ru.numel() > 2 else math.nan
@@ -828,18 +873,19 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
     for v in torch.unique(group[used]).tolist():
         m = used & (group == v)
         per_view.append({"view": int(v), "n": int(m.sum()),
-                         "residual_rel_rms": float((bx.residual[m] ** 2).mean().sqrt()
+                         "residual_rel_rms": float((resid[m] ** 2).mean().sqrt()
                                                    / b[m].abs().mean().clamp_min(1e-300))})
     causes, mild = [], []
     chi2 = chi_sig = None
     ok = True
     if noise_known:
-        chi2 = sol.chi2_reduced.tolist()
-        chi_sig = ((sol.chi2_reduced - 1.0) / (2.0 / sol.dof).sqrt()).tolist()
+        chi2 = chi2_t.tolist()
+        chi_sig = ((chi2_t - 1.0) / (2.0 / dof_t).sqrt()).tolist()
         if max(chi_sig) > 3.0:
             excess = (f"residual larger than the noise model allows (chi2/nu up to "
                       f"{max(chi2):.3g}, {max(chi_sig):.2g} sigma above 1); the intervals are "
-                      f"inflated by sqrt(chi2/nu)")
+                      + ("inflated by sqrt(chi2/nu)" if applied else
+                         "not inflated for it (judged after the fit)"))
             if max(chi2) > CHI2_INADEQUATE:
                 ok = False
                 causes.append(excess)
@@ -868,7 +914,10 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
         widen = math.sqrt((1.0 + rho) / max(1.0 - rho, 1e-3))
         causes.append(f"spatially structured residual (lag-1 autocorrelation {rho:.2f}): "
                       "an effect the model lacks, so the intervals are widened by "
-                      f"{widen:.2g}x")
+                      f"{widen:.2g}x" if applied else
+                      f"spatially structured residual (lag-1 autocorrelation {rho:.2f}): "
+                      f"an effect the model lacks; its errors would need widening by "
+                      f"{widen:.2g}x (judged after the fit: not applied)")
     if not ok:
         if math.isfinite(skew) and skew > 1.0:
             causes.append("positive residual tail: unmodelled specular highlights or a wrong "
@@ -879,7 +928,9 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
                       "its parameters, shadows and interreflections")
     if ok and mild:
         verdict = ("the model explains the data up to a small excess over the noise model "
-                   "(no structure in the residual); intervals inflated accordingly")
+                   "(no structure in the residual); " + (
+                       "intervals inflated accordingly" if applied else
+                       "its errors do not include that excess"))
         causes = mild
     elif ok and deficit:
         verdict = ("the model explains the data (no excess over the noise model, no "
@@ -892,7 +943,9 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
             "no structure in the residual")
     else:
         verdict = ("the model does not explain the data; claims are widened (see "
-                   "likely_causes)")
+                   "likely_causes)" if applied else
+                   "the model does not explain the data (see likely_causes); this problem's "
+                   "errors are not widened for it: read them as lower bounds")
     return {"adequate": ok, "verdict": verdict, "likely_causes": causes,
             "chi2_reduced": chi2, "chi2_sigma": chi_sig,
             "chi2_note": None if noise_known else "no noise model: no chi2 is reported (the "

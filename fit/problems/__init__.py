@@ -8,6 +8,7 @@ Results keys follow schema ``brdfcap-fit/1`` (``docs/fitting.md#resultsjson``).
 
 from __future__ import annotations
 
+from ..conditioning import residual_adequacy
 from ..records import FIT_SCHEMA, conditioning_json, lighting_json
 from ..result import Estimate, FitResult
 
@@ -40,4 +41,28 @@ def solve_problem(name: str, samples, known: Known, options: FitOptions) -> FitR
     """
     res = get_problem(name).solve(samples, known, options)
     res.record.setdefault("fit_schema", FIT_SCHEMA)
+    _state_adequacy(res, samples, known)
     return res
+
+
+def _state_adequacy(res: FitResult, samples, known: Known) -> None:
+    """Give every fit an adequacy verdict (``record["adequacy"]``).
+
+    Problems without their own (``both``, ``aldrian-smith``, …) are judged from their
+    prediction's residual (:func:`..conditioning.residual_adequacy`: χ² with a noise model, the
+    residual's structure always).
+    """
+    rec = res.record
+    if any(isinstance(b, dict) and isinstance(b.get("adequacy"), dict)
+           for b in (rec, rec.get("lighting"), rec.get("conditioning"))) or \
+            res.prediction is None or getattr(samples, "radiance", None) is None:
+        return
+    b = samples.radiance
+    pred = res.prediction.to(b.device)
+    if pred.shape != b.shape:
+        return
+    noise = known.noise is not None and getattr(known.noise, "is_known", False)
+    var = getattr(samples, "variance", None) if noise else None
+    n_params = sum(int(e.value.numel()) for e in res.estimates if not e.known)
+    rec["adequacy"] = residual_adequacy(b, pred, var, view=getattr(samples, "view", None),
+                                        n_params=n_params)

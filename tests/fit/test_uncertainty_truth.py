@@ -294,3 +294,27 @@ def test_a_residual_smaller_than_the_noise_model_is_said_not_called_inadequate()
     true = fit_lighting(n, bn, 2, spec, variance=torch.full_like(b, sd ** 2)).adequacy
     assert true["adequate"] and not true["notes"], true
     assert "explains the data: chi2/nu consistent with 1" in true["verdict"]
+
+
+def test_a_problem_without_its_own_verdict_is_judged_from_its_prediction():
+    """``residual_adequacy`` (problems ``both``, ``aldrian-smith``, …): a prediction that misses
+    a smooth effect in one view is "does not explain the data", with the structured residual
+    named and the widening it would need stated as *not applied*; a prediction off by noise
+    only explains the data; with a noise model χ² is shown, without one it is not.
+    """
+    from brdfcap.fit.conditioning import residual_adequacy
+
+    g = torch.Generator().manual_seed(9)
+    n = _scan(unit(2000, g, hemisphere=True))
+    b = (0.4 * n[:, 2:3] + 0.6).expand(-1, 3).clone()
+    sd = 0.005 * float(b.mean())
+    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    var = torch.full_like(b, sd ** 2)
+    good = residual_adequacy(bn, b, var, n_params=9)
+    assert good["adequate"] and good["chi2_reduced"] is not None, good
+    assert max(good["chi2_reduced"]) < 1.3
+    missed = b - 0.05 * n[:, :1] ** 2  # an effect the prediction lacks, smooth over the image
+    bad = residual_adequacy(bn, missed, None)
+    assert not bad["adequate"] and bad["chi2_reduced"] is None
+    assert "not applied" in bad["likely_causes"][0] and "lower bounds" in bad["verdict"]
+    assert bad["widen_applied"] is False

@@ -49,3 +49,31 @@ def test_large_z_within_the_simulations_own_accuracy():
         verdict = truth_rows(gt, res)["bands"][0][-1]
         assert ("within the simulation's own accuracy" in verdict) is bool(within), verdict
         assert ("biased" in verdict) is (not within), verdict
+
+
+def test_a_gauge_scale_is_not_read_as_an_error():
+    """Problem ``both`` fixes the global scale by ``f_0 = 1`` (``ambiguities``: "global scale",
+    "fixed ..."): its lighting is the truth times an unknown factor. Compared as is, a perfect
+    fit read "within 300 std. errors, 80% of |L00|"; compared up to that one factor (least
+    squares over the determined coefficients, recorded as ``gauge_scale``) it agrees, and a
+    shape error still shows.
+    """
+    true = [[0.79, 0.44, 0.54], [0.39, 0.35, 0.6], [-0.34, -0.18, -0.27], [-0.29, -0.06, 0.01]]
+    res = _results(0.01)
+    res["lighting"]["bands"] = [{"l": 0, "determined": True}, {"l": 1, "determined": True}]
+    res["lighting"]["stderr"] = [[0.002] * 3] * 4
+    res["lighting"]["coefficients"] = [[0.37 * v for v in row] for row in true]
+    res["ambiguities"] = [{"name": "global scale",
+                           "resolution": "fixed explicitly: specular filter f_0 = 1"}]
+    truth = {"lighting": {"coefficients": true, "lmax": 1}}
+    gt = truth_comparison(res, truth)["lighting"]
+    assert gt["gauge_scale"] == pytest.approx(0.37, rel=1e-9)
+    assert max(b["max_abs_z"] for b in gt["bands"]) < 1e-6
+    assert "the global scale the images do not fix" in gt["truth"]
+    # a shape error (band 1 of red 20% off) is not absorbed by the scale
+    res["lighting"]["coefficients"][1][0] *= 1.2
+    gt = truth_comparison(res, truth)["lighting"]
+    assert gt["bands"][1]["max_abs_z"] > 5
+    # without the gauge the same numbers are compared as they are
+    del res["ambiguities"]
+    assert truth_comparison(res, truth)["lighting"]["gauge_scale"] is None
