@@ -322,7 +322,9 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
 
     Returns the JSON-ready ``results["ground_truth"]`` block or ``None`` when nothing compares.
     A recovered lighting whose scale was fixed by setting the albedo to 1 is compared with
-    true lighting × true albedo (the product the fit determines).
+    true lighting × true albedo (the product the fit determines); one whose global scale is a
+    gauge (``ambiguities``: "global scale", fixed by convention, problem ``both``) with the true
+    lighting × the least-squares scale over the determined coefficients (``gauge_scale``).
     """
     out: dict = {"source": "ground_truth.json", "lighting": None, "brdf": []}
     lt = results.get("lighting")
@@ -340,6 +342,20 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
         t = np.zeros_like(est)
         kk = min(k, true_L.shape[0])
         t[:kk] = true_L[:kk, : est.shape[1]] * (alb[: est.shape[1]] if scaled else 1.0)
+        # a lighting whose global scale is a gauge (problem both: f_0 = 1) is compared up to
+        # that one scale — the least-squares factor over the determined coefficients — else
+        # the gauge alone reads as an error of many standard errors
+        gauge = next((a for a in results.get("ambiguities") or []
+                      if isinstance(a, dict) and a.get("name") == "global scale"
+                      and str(a.get("resolution", "")).startswith("fixed")), None)
+        g_scale = None
+        if gauge is not None and not scaled:
+            sel = np.isfinite(err) & (err > 0)
+            sel = sel if sel.any() else np.ones_like(sel)
+            den = float(np.sum(t[sel] ** 2))
+            if den > 0:
+                g_scale = float(np.sum(est[sel] * t[sel]) / den)
+                t = t * g_scale
         z = np.where(np.isfinite(err) & (err > 0), (est - t) / np.where(err > 0, err, 1),
                      np.nan)
         lmax = int(math.isqrt(k)) - 1
@@ -369,7 +385,11 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
                 entry["within_simulation_accuracy"] = entry["error_rel_dc"] <= acc
             bands.append(entry)
         out["lighting"] = {"truth": how + (" × true albedo (the fit determines the product)"
-                                           if scaled else ""),
+                                           if scaled else "") + (
+                               f" × {g_scale:.4g}, the global scale the images do not fix "
+                               f"({gauge['resolution']}), least squares over the determined "
+                               f"coefficients" if g_scale is not None else ""),
+                           "gauge_scale": g_scale,
                            "simulation_accuracy": acc,
                            "true": t.tolist(), "z": [[None if not math.isfinite(v) else float(v)
                                                       for v in row] for row in z],
