@@ -141,6 +141,8 @@ def summary_lines(results: dict, fit: FitResult, geometry=None) -> list[str]:
             line += f"; predicted {row['predicted']}"
         s.append(line + ".")
     s.append(f"Does the model explain the data? {h['verdict'][1]}.")
+    if h["causes"]:
+        s.append("Likely causes: " + "; ".join(c.rstrip(".") for c in h["causes"]) + ".")
     lighting = fit.lighting
     if lighting is not None and lighting.scale_fixing:
         s.append("Scale: " + lighting.scale_fixing.rstrip(".") + ".")

@@ -39,7 +39,7 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
     out = Path(out_dir)
     lines = [f"{results.get('capture', '?')}: {h['measured']}"]
     for row in h["rows"]:
-        lines.append(f"  {row['quantity']}: {row['value']}")
+        lines.append(f"  {row['quantity']}" + (f": {row['value']}" if row["value"] else ""))
         if row["measured"]:
             pred = row["predicted"]
             lines.append(f"    ill-conditioned bands: {row['measured']}"
@@ -55,6 +55,7 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
                      "e.g. behind the object in one view, which more views, not less noise, would "
                      "determine)")
     lines.append(f"  model adequacy: {h['verdict'][1]}")
+    lines += [f"    - {c}" for c in h.get("causes") or []]
     sug = lmax_suggestion(results)
     if sug:
         lines.append(f"  suggested lmax: {sug}")

@@ -90,15 +90,41 @@ def _measured_text(first, bands: list[dict] | None = None) -> str:
     return f"from l = {int(first)} (bands l ≤ {int(first) - 1} determined{note})"
 
 
-def _verdict(results: dict) -> tuple[str, str]:
-    """Whether the model explains the data: (class, sentence)."""
+def _adequacy_source(results: dict) -> dict | None:
+    """Return the run's adequacy verdict: top level, the lighting's, or the conditioning's."""
     for src in (results.get("adequacy"), (results.get("lighting") or {}).get("adequacy"),
                 (results.get("conditioning") or {}).get("adequacy")):
         if isinstance(src, dict) and src.get("verdict"):
-            detail = src.get("message") or src.get("reason") or ""
-            passed = src.get("adequate", src.get("passed", src.get("ok", True)))
-            return ("ok" if str(passed).lower() != "false"
-                    else "bad", f"{src['verdict']}" + (f": {detail}" if detail else ""))
+            return src
+    return None
+
+
+def adequacy_causes(results: dict) -> list[str]:
+    """Return the adequacy verdict's ``likely_causes`` as plain sentences.
+
+    Its ``notes`` are not repeated: they are already part of the verdict's sentence.
+    """
+    items = (_adequacy_source(results) or {}).get("likely_causes") or []
+    return [str(x) for x in (items if isinstance(items, list) else [items]) if x]
+
+
+def _verdict(results: dict) -> tuple[str, str]:
+    """Whether the model explains the data: (class, sentence).
+
+    The sentence points at the causes the report lists under it (:func:`adequacy_causes`),
+    not at a results.json key the reader of a report does not see.
+    """
+    src = _adequacy_source(results)
+    if src is not None:
+        detail = src.get("message") or src.get("reason") or ""
+        passed = src.get("adequate", src.get("passed", src.get("ok", True)))
+        text = str(src["verdict"])
+        if src.get("likely_causes"):
+            text = text.replace("(see likely_causes)", "(likely causes below)")
+        else:
+            text = text.replace(" (see likely_causes)", "")
+        return ("ok" if str(passed).lower() != "false"
+                else "bad", text + (f": {detail}" if detail else ""))
     fit = results.get("fit") or {}
     rel = fit.get("residual_rel")
     lt = results.get("lighting") or {}
@@ -121,7 +147,8 @@ def headline(results: dict) -> dict:
     """Build the report's first screen: what was measured, how well, where the data stop, adequacy.
 
     Returns ``{"measured": str, "rows": [{"quantity", "value", "measured", "predicted",
-    "cite"}], "verdict": (class, str)}``.
+    "cite"}], "verdict": (class, str), "causes": [str]}`` (``causes``: the verdict's likely
+    causes, listed under it).
     """
     fit = results.get("fit") or {}
     n_img = len(results.get("images") or [])
@@ -180,7 +207,8 @@ def headline(results: dict) -> dict:
                      "predicted": _prediction_text(pred) if pred else "—",
                      "cite": (pred or {}).get("formula", "").replace(
                          "R&H 2001", "Ramamoorthi & Hanrahan (2001)") if pred else ""})
-    return {"measured": "; ".join(what) + ".", "rows": rows, "verdict": _verdict(results)}
+    return {"measured": "; ".join(what) + ".", "rows": rows, "verdict": _verdict(results),
+            "causes": adequacy_causes(results)}
 
 
 #: BRDF parameters named on the first screen, in this order (when present and fitted).

@@ -18,3 +18,27 @@ def test_inadequate_model_is_flagged_not_green():
     assert headline(_results(True))["verdict"][0] == "ok"
     cls, text = headline(_results(False))["verdict"]
     assert cls == "bad" and "does not explain" in text
+
+
+def test_the_likely_causes_are_listed_where_the_verdict_points():
+    """A verdict that says "see likely_causes" named a results.json key the report's reader
+    never sees; the first screen, the terminal and the summary now list the causes under it.
+    """
+    from brdfcap.reports.terminal import terminal_lines
+
+    res = _results(False)
+    causes = ["spatially structured residual (lag-1 autocorrelation 0.52)",
+              "positive residual tail: unmodelled specular highlights or a wrong BRDF"]
+    res["lighting"]["adequacy"].update(
+        verdict="the model does not explain the data (see likely_causes); this problem's "
+                "errors are not widened for it: read them as lower bounds",
+        likely_causes=causes)
+    h = headline(res)
+    assert h["causes"] == causes
+    assert "see likely_causes" not in h["verdict"][1]
+    assert "(likely causes below)" in h["verdict"][1]
+    lines = terminal_lines(res, "out")
+    at = next(i for i, x in enumerate(lines) if x.startswith("  model adequacy:"))
+    assert lines[at + 1:at + 3] == [f"    - {c}" for c in causes]
+    ok = _results(True)
+    assert headline(ok)["causes"] == [] and "likely causes" not in headline(ok)["verdict"][1]
