@@ -217,3 +217,38 @@ def test_a_lobe_of_three_texels_under_suns_is_rendered_by_cells_and_is_exact():
         1e-2 * float(probe.image.abs().mean()))).max())
     assert rel < 4e-3, rel
     assert rel <= 2 * info["terms"]["specular"]["max_rel_err"] + 1e-3
+
+
+def test_lobe_quadrature_does_not_claim_convergence_it_lacks(reference):
+    """Phong s = 1024 (a lobe of ~1.5 texels) under Grace Cathedral at 128 × 256: on two of
+    these pixels the 32 × 64 and 64 × 128 product rules miss the same bright texel in the lobe's
+    tail and agree to 0.1%, so ``|B_2n − B_n|`` claimed convergence (0.097%) where the true
+    error was 0.81%. The estimate is now floored by the previous difference over the fastest
+    decay a doubling gives on a bilinear probe (4×): it must not be far below the true error,
+    and an error above the tolerance is not called converged. Truth: the same integrand by
+    the lobe rule at 2^20 nodes (its own estimate ≤ 2e-4).
+    """
+    from brdfcap.capture.images import read_image
+
+    img = torch.tensor(read_image(reference / "probes" / "grace.hdr"), dtype=torch.float64)
+    f = img.shape[0] // 128
+    img = torch.nn.functional.avg_pool2d(img[..., :3].permute(2, 0, 1)[None], f)[0]
+    probe = LatLongProbe(img.permute(1, 2, 0).contiguous())
+    g = torch.Generator().manual_seed(0)
+    n = torch.nn.functional.normalize(torch.randn(40, 3, generator=g, dtype=torch.float64),
+                                  dim=-1)
+    wo = torch.tensor([[0.0, math.cos(math.pi / 6), 0.5]], dtype=torch.float64).expand(40, 3)
+    n = torch.where(((n * wo).sum(-1) < 0)[:, None], -n, n)[[1, 7, 38]]
+    wo = wo[:3]
+    m = make_brdf("phong", kd=[0.0] * 3, ks=[0.6] * 3, s=1024.0)
+    ref, ri = render_environment(m, n, wo, probe, rel_tol=1e-6, return_info=True,
+                                 method="quadrature", max_samples=1 << 20)
+    assert ri["terms"]["specular"]["max_rel_err"] < 2e-4
+    b, info = render_environment(m, n, wo, probe, rel_tol=1e-3, return_info=True,
+                                 method="quadrature", max_samples=1 << 14)
+    sp = info["terms"]["specular"]
+    den = ref.abs().clamp_min(0.006 * float(probe.image.abs().mean()))
+    true = float(((b - ref).abs() / den).max())
+    assert true > 5e-3  # the case: the rule is off by more than the tolerance
+    assert sp["max_rel_err"] > true / 1.5, (sp["max_rel_err"], true)
+    assert not sp["converged"] and not info["converged"]
