@@ -39,7 +39,11 @@ Environment lighting (:func:`render_environment`)
       ``check.max_rel_diff`` and the term's ``max_rel_err`` is the larger of the two (as for
       the cells below). The integrand ``f cos L / pdf`` is the point evaluation
       divided by the sampler's density: the sampler changes how fast it converges, never
-      the value it converges to.
+      the value it converges to. A model whose transfer jumps inside the square gives its own
+      rule (``BRDFModel.specular_rule``): Phong's horizon clamp cuts the rings about ``r``,
+      so its rule puts Gauss–Legendre nodes on each ring's visible arc (``O(n⁻³)`` instead
+      of ``O(1/n)``; the glossy demo scene 2.2% unconverged at 2^14 nodes in 158 s → 0.1%
+      converged in 47 s).
     * **Specular lobes without a sampler** (a model registered without one): the texel
       quadrature above applied to the full specular transfer ``f_s cos``.
     * **Mirror** (a Dirac lobe): ``ks · L(r)`` by bilinear lookup at ``r = 2(n·ωo)n − ωo``.
@@ -132,8 +136,9 @@ _MAP_MIN_TOL = 1e-4         # irradiance map from this tolerance up
 #: Fastest error decay per doubling of the lobe rule's order, per probe interpolation
 #: (bilinear: C⁰, error O(n⁻²); cubic: C¹): the floor of its error estimate (module doc).
 _LOBE_MAX_DECAY = {"bilinear": 4.0, "cubic": 8.0}
-#: Highest order of the lobe rule's check (``2 n²`` = 2M nodes per pixel, ~0.3 GB at a time).
-_LOBE_CHECK_MAX_ORDER = 1024
+#: Highest order of the lobe rule's check (``2 n²``, Phong's visible rule ``4 n²`` = 1M nodes
+#: per pixel); a render that reached it is not checked.
+_LOBE_CHECK_MAX_ORDER = 512
 
 
 @dataclass
@@ -306,7 +311,12 @@ def _gauss01(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _lobe_rule(model: BRDFModel, normal, wo, probe: LatLongProbe, n1: int):
-    """``(B, B⁺)`` ``(N, C)`` by the product rule of order ``n1`` in the sampler's coordinates."""
+    """``(B, B⁺)`` ``(N, C)`` and the nodes per pixel, by the product rule of order ``n1``.
+
+    The model's own rule (:meth:`~brdfcap.fit.brdf.BRDFModel.specular_rule`, e.g. Phong's
+    visible part of the lobe) when it has one, else ``n1 × 2 n1`` nodes in the sampler's
+    coordinates.
+    """
     dev = normal.device
     x1, w1 = _gauss01(n1, dev)
     n2 = 2 * n1
@@ -316,21 +326,28 @@ def _lobe_rule(model: BRDFModel, normal, wo, probe: LatLongProbe, n1: int):
     n_pix, c, s = normal.shape[0], probe.image.shape[2], u.shape[0]
     out = torch.zeros(n_pix, c, dtype=torch.float64, device=dev)
     out_abs = torch.zeros_like(out)
-    step = max(1, _CHUNK // s)
+    step = max(1, _CHUNK // (2 * s))      # (a model's own rule may use up to twice the nodes)
+    nodes = s
     for a in range(0, n_pix, step):
         nrm, w_o = normal[a:a + step], wo[a:a + step]
         m = nrm.shape[0]
-        wi, pdf = model.sample_specular(nrm, w_o, u[None].expand(m, s, 2))
+        rule = model.specular_rule(nrm, w_o, n1)
+        if rule is None:
+            wi, pdf = model.sample_specular(nrm, w_o, u[None].expand(m, s, 2))
+            wqm = wq[None].expand(m, s)
+        else:
+            wi, pdf, wqm = rule
+        nodes = wi.shape[1]
         wi_f = torch.nn.functional.normalize(wi.reshape(-1, 3), dim=-1)
-        f = model.eval_specular_cos(nrm[:, None].expand(m, s, 3).reshape(-1, 3), wi_f,
-                                    w_o[:, None].expand(m, s, 3).reshape(-1, 3))
+        f = model.eval_specular_cos(nrm[:, None].expand(m, nodes, 3).reshape(-1, 3), wi_f,
+                                    w_o[:, None].expand(m, nodes, 3).reshape(-1, 3))
         pdf = pdf.reshape(-1, 1)
         val = f * probe.radiance(wi_f) / pdf
         val = torch.where(torch.isfinite(val) & (pdf > 0), val, torch.zeros_like(val))
-        val = val.reshape(m, s, c) * wq[None, :, None]
+        val = val.reshape(m, nodes, c) * wqm[..., None]
         out[a:a + step] = val.sum(1)
         out_abs[a:a + step] = val.abs().sum(1)
-    return out, out_abs
+    return out, out_abs, nodes
 
 
 def _sampled_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, max_samples,
@@ -346,11 +363,11 @@ def _sampled_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol
     decay = _LOBE_MAX_DECAY[probe.interpolation]
     img = probe.image.abs()
     spiky = float(img.max()) >= _BRIGHT_RATIO * float(img.mean())
-    prev, _ = _lobe_rule(model, normal, wo, probe, n1)
+    prev, _, _ = _lobe_rule(model, normal, wo, probe, n1)
     prev_diff = None
     while active.numel():
         n1 *= 2
-        cur, cur_abs = _lobe_rule(model, normal[active], wo[active], probe, n1)
+        cur, cur_abs, nodes = _lobe_rule(model, normal[active], wo[active], probe, n1)
         diff = ((cur - prev).abs() / _scale(cur_abs, floor)).amax(-1)  # the coarser rule's error
         # ... floored by the previous difference / the fastest decay (module doc): two rules
         # that miss the same bright texel agree without being converged
@@ -358,10 +375,10 @@ def _sampled_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol
         # under a sun-like probe one difference is not enough: the 4 × 8 and 8 × 16 rules can
         # both miss a bright texel (module doc)
         done = (rel <= rel_tol) & (prev_diff is not None or not spiky)
-        if 2 * (2 * n1) ** 2 > max_samples:
+        if 4 * nodes > max_samples:          # the next order has 4× the nodes
             done = torch.ones_like(done)
         ids = active[done]
-        out[ids], rel_out[ids], spp[ids] = cur[done], rel[done], 2 * n1 * n1
+        out[ids], rel_out[ids], spp[ids] = cur[done], rel[done], nodes
         active, prev, prev_diff = active[~done], cur[~done], diff[~done]
     est = float(rel_out.max()) if n_pix else 0.0
     info = {"method": "lobe-quadrature",
@@ -386,9 +403,10 @@ def _lobe_check(model: BRDFModel, normal, wo, probe: LatLongProbe, out, floor, n
     Under a sun-like probe the lobe rule's own estimate can miss a bright texel no node has
     hit yet (module doc). The up to :data:`_CHECK_PIXELS` pixels whose lobe gives the largest
     share of their scale to the brightest texels (the lobe evaluated at the bright texels'
-    quadrant nodes) are re-rendered with ``4 n × 8 n`` nodes (``n`` the finest order any pixel
-    used, at most :data:`_LOBE_CHECK_MAX_ORDER`). Returns ``{"pixels", "nodes",
-    "max_rel_diff", "rms_rel_diff"}``, or ``None`` when the probe has no texel standing out.
+    quadrant nodes) are re-rendered by the rule of order ``4 n`` (``n`` the finest order any
+    pixel used, at most :data:`_LOBE_CHECK_MAX_ORDER`). Returns ``{"pixels", "nodes",
+    "max_rel_diff", "rms_rel_diff"}``, or ``None`` when the probe has no texel standing out or
+    the render already reached that order.
     """
     split = _split_probe(probe)
     if split.excess.numel() == 0:
@@ -407,9 +425,11 @@ def _lobe_check(model: BRDFModel, normal, wo, probe: LatLongProbe, out, floor, n
     share = share / _scale(out.abs(), floor).amax(-1)
     sub = torch.topk(share, min(n_pix, _CHECK_PIXELS)).indices
     nc = min(4 * n1, _LOBE_CHECK_MAX_ORDER)
-    fine, fine_abs = _lobe_rule(model, normal[sub], wo[sub], probe, nc)
+    if nc <= n1:          # the render already used the finest rule the check would
+        return None
+    fine, fine_abs, nodes = _lobe_rule(model, normal[sub], wo[sub], probe, nc)
     diff = ((fine - out[sub]).abs() / _scale(fine_abs, floor)).amax(-1)
-    return {"pixels": int(sub.numel()), "nodes": 2 * nc * nc,
+    return {"pixels": int(sub.numel()), "nodes": nodes,
             "max_rel_diff": float(diff.max()), "rms_rel_diff": float(diff.pow(2).mean().sqrt())}
 
 

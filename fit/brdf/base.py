@@ -217,6 +217,19 @@ class BRDFModel:
         """
         return None
 
+    def specular_rule(self, normal: torch.Tensor, wo: torch.Tensor, n: int
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """Give a product rule of order ``n`` for the lobe, on pieces where the transfer is smooth.
+
+        Returns ``(wi (N, S, 3), pdf (N, S), weight (N, S))``: directions, the sampler's density
+        at them and quadrature weights in the sampler's unit square, so that
+        ``Σ_j weight_j f(ωi_j) L(ωi_j) / pdf_j`` integrates ``f cos L`` over the sphere; or
+        ``None`` (default) to let the renderer use :meth:`sample_specular` on the whole square.
+        A model whose transfer jumps inside the square (Phong's horizon clamp) gives a rule that
+        keeps its nodes on one side of the jump, so the reference renderer converges fast.
+        """
+        return None
+
     def specular_affine(self, normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor,
                         shape=None) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Split the specular transfer as ``scale · a + q`` for a lobe shape (parametric fits).
