@@ -199,3 +199,25 @@ def test_per_view_tables_split_scalars_from_nested_records():
     assert reg["cols"] == ["pnp.reprojection_rms_px", "error"]
     assert reg["rows"][0] == ("a.exr", {"pnp.reprojection_rms_px": 0.2})
     assert reg["rows"][1] == ("b.exr", {"error": "too few points"})
+
+
+def test_the_report_lists_the_adequacy_causes_once(run_out):
+    """The causes stand under the verdict as a list; the summary's "Likely causes" line
+    (results.json) is not repeated in the first screen's list of further facts, which still
+    shows the others (tests/reports/test_verdict.py: the terminal and the headline).
+    """
+    import copy
+
+    from brdfcap.reports.html import ReportInputs, render_report
+    from brdfcap.reports.views import headline
+
+    res = copy.deepcopy(run_out.results)
+    src = res.get("adequacy") or res["lighting"]["adequacy"]
+    src.update(adequate=False, likely_causes=["cause-one"],
+               verdict="the model does not explain the data (see likely_causes)")
+    h = headline(res)
+    summary = [h["measured"]] + ["row"] * len(h["rows"]) + [
+        "verdict", "Likely causes: cause-one.", "a further fact"]
+    html = render_report(ReportInputs(results=res, figures={}, summary=summary))
+    assert html.count("cause-one") == 1 and "a further fact" in html
+    assert "(likely causes below)" in html and "see likely_causes" not in html

@@ -42,3 +42,4 @@ def test_the_likely_causes_are_listed_where_the_verdict_points():
     assert lines[at + 1:at + 3] == [f"    - {c}" for c in causes]
     ok = _results(True)
     assert headline(ok)["causes"] == [] and "likely causes" not in headline(ok)["verdict"][1]
+
