@@ -142,7 +142,7 @@ def test_lmax_auto_reports_the_band_the_data_determine(captures, tmp_path):
     assert r1["lighting"]["noise_source"] == NO_NOISE_MODEL and "χ²" not in html
     # the lighting has band 2 (Grace to l = 2): at --lmax 1 the verdict judges the internal
     # solution, so do the residual images and RMS; what the reported bands alone leave is said.
-    # (The verdict itself is that of --lmax auto: this noiseless render's residual, 0.01% of
+    # (The verdict itself is that of --lmax auto: this noiseless render's residual, ~0.01% of
     # the signal, is the simulator's and the exact design's quadrature error, smooth over the
     # image — structured — since the simulator integrates Phong's visible lobe exactly.)
     ad, ad_auto = r1["lighting"]["adequacy"], lt["adequacy"]
