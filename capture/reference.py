@@ -362,8 +362,7 @@ def _sampled_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol
     active = torch.arange(n_pix, device=dev)
     n1 = 4
     decay = _LOBE_MAX_DECAY[probe.interpolation]
-    img = probe.image.abs()
-    spiky = float(img.max()) >= _BRIGHT_RATIO * float(img.mean())
+    spiky = _sun_like(probe)
     prev, _, _ = _lobe_rule(model, normal, wo, probe, n1)
     prev_diff = None
     while active.numel():
@@ -398,6 +397,12 @@ def _sampled_specular(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol
     return out, info
 
 
+def _sun_like(p: LatLongProbe) -> bool:
+    """Whether the probe has a texel ≥ :data:`_BRIGHT_RATIO` × its mean |radiance|."""
+    img = p.image.abs()
+    return float(img.max()) >= _BRIGHT_RATIO * float(img.mean())
+
+
 def _lobe_check(model: BRDFModel, normal, wo, probe: LatLongProbe, out, floor, n1: int):
     """Re-render the pixels the probe's brightest texels light most by a 4× finer lobe rule.
 
@@ -409,6 +414,9 @@ def _lobe_check(model: BRDFModel, normal, wo, probe: LatLongProbe, out, floor, n
     "max_rel_diff", "rms_rel_diff"}``, or ``None`` when the probe has no texel standing out or
     the render already reached that order.
     """
+    nc = min(4 * n1, _LOBE_CHECK_MAX_ORDER)
+    if nc <= n1:          # the render already used the finest rule the check would
+        return None
     split = _split_probe(probe)
     if split.excess.numel() == 0:
         return None
@@ -425,9 +433,6 @@ def _lobe_check(model: BRDFModel, normal, wo, probe: LatLongProbe, out, floor, n
         share[a:a + step] = (f.reshape(k, m, -1) * ew[None]).abs().sum(1).amax(-1)
     share = share / _scale(out.abs(), floor).amax(-1)
     sub = torch.topk(share, min(n_pix, _CHECK_PIXELS)).indices
-    nc = min(4 * n1, _LOBE_CHECK_MAX_ORDER)
-    if nc <= n1:          # the render already used the finest rule the check would
-        return None
     fine, fine_abs, nodes = _lobe_rule(model, normal[sub], wo[sub], probe, nc)
     diff = ((fine - out[sub]).abs() / _scale(fine_abs, floor)).amax(-1)
     return {"pixels": int(sub.numel()), "nodes": nodes,
@@ -546,8 +551,7 @@ def _use_cells(model: BRDFModel, normal, wo, p: LatLongProbe, method: str,
     if method != "auto" or n_pix < _CELLS_MIN_PIXELS or rel_tol < _CELLS_MIN_TOL:
         return False
     # smooth lighting (SH reconstructions, no texel ≥ 10× the mean): lobe quadrature is faster
-    img = p.image.abs()
-    if p.interpolation != "bilinear" or float(img.max()) < _BRIGHT_RATIO * float(img.mean()):
+    if p.interpolation != "bilinear" or not _sun_like(p):
         return False
     sub = torch.linspace(0, n_pix - 1, min(n_pix, 256), device=normal.device).long()
     width = _lobe_geometry(model, normal[sub], wo[sub])[1]

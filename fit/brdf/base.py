@@ -32,11 +32,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 
 __all__ = ["Parameter", "BRDFModel", "register_brdf_model", "unregister_brdf_model",
            "get_brdf_model", "brdf_model_names", "make_brdf", "brdf_from_json", "as_brdf_model",
-           "BRDF_NAMES", "orthonormal_basis"]
+           "BRDF_NAMES", "orthonormal_basis", "visible_ring_rule"]
 
 
 @dataclass(frozen=True)
@@ -365,3 +366,44 @@ def orthonormal_basis(axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     t = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], -1)
     bb = torch.stack([b, sign + y * y * a, -y], -1)
     return t, bb
+
+
+def visible_ring_rule(axis, t, b, phi0, lo, hi, n: int, polar_cos, cos_half_arc):
+    """Nodes and weights of a product rule over rings about ``axis``, each cut to an arc.
+
+    A lobe sampler's square ``(u₁, u₂)`` maps ``u₁`` to a ring at polar angle ``θ`` about
+    ``axis`` (``cos θ = polar_cos(u₁)``) and ``u₂ = φ/2π`` to its azimuth in the frame ``(t, b)``
+    of ``axis``. Where only the arc ``|φ − φ₀| < Δ`` of a ring counts (``cos Δ =
+    cos_half_arc(cos θ, sin θ)``, ``≤ −1``: the whole ring, ``≥ 1``: none of it; e.g. the part
+    of a lobe above the horizon) the rule is Gauss–Legendre of order ``n`` in ``u₁`` on each
+    piece ``[lo, hi]`` ``(N, P)``, its nodes mapped by ``v ↦ (1 − cos πv)/2`` (``Δ`` has
+    square-root ends where a ring starts or stops being cut, which the map makes smooth),
+    times the periodic midpoint rule on whole rings or Gauss–Legendre on cut arcs (``2n``
+    nodes). Returns ``(cos θ (N, S), directions (N, S, 3), weights (N, S))``, the weights in
+    the square's measure ``du₁ du₂``. Used by :meth:`BRDFModel.specular_rule` of Phong
+    (rings about the mirror direction) and of the microfacet models (half vectors about ``n``).
+    """
+    dev, f64 = axis.device, torch.float64
+    x, w = (torch.as_tensor(v, dtype=f64, device=dev) for v in np.polynomial.legendre.leggauss(n))
+    x2, w2 = (torch.as_tensor(v, dtype=f64, device=dev)
+              for v in np.polynomial.legendre.leggauss(2 * n))
+    c = 0.5 * math.pi * (x + 1.0)
+    xv, wv = 0.5 * (1.0 - torch.cos(c)), w * (0.25 * math.pi) * torch.sin(c)
+    u1 = lo[..., None] + (hi - lo)[..., None] * xv                       # (N, P, n)
+    wu1 = (hi - lo)[..., None] * wv
+    ct = polar_cos(u1)
+    st = torch.sqrt((1.0 - ct * ct).clamp_min(0.0))
+    delta = torch.arccos(cos_half_arc(ct, st).clamp(-1.0, 1.0))          # half-arc
+    full = delta >= math.pi
+    mid = (torch.arange(2 * n, dtype=f64, device=dev) + 0.5) / n - 1.0
+    xs = torch.where(full[..., None], mid, x2)                           # (N, P, n, 2n)
+    ws = torch.where(full[..., None], torch.full_like(x2, 1.0 / n), w2)
+    ph = phi0[:, None, None, None] + delta[..., None] * xs
+    wq = wu1[..., None] * ws * (delta[..., None] / (2.0 * math.pi))      # u₂ = φ / 2π
+    ct4, st4 = ct[..., None].expand_as(ph), st[..., None].expand_as(ph)
+    e = (None, None, None)
+    d = ((st4 * torch.cos(ph))[..., None] * t[(slice(None),) + e]
+         + (st4 * torch.sin(ph))[..., None] * b[(slice(None),) + e]
+         + ct4[..., None] * axis[(slice(None),) + e])
+    m = axis.shape[0]
+    return ct4.reshape(m, -1), d.reshape(m, -1, 3), wq.reshape(m, -1)

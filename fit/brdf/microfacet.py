@@ -33,7 +33,14 @@ from ..filters import (
     predicted_lstar_microfacet,
     radial_filter_by_quadrature,
 )
-from .base import KD, BRDFModel, Parameter, orthonormal_basis, register_brdf_model
+from .base import (
+    KD,
+    BRDFModel,
+    Parameter,
+    orthonormal_basis,
+    register_brdf_model,
+    visible_ring_rule,
+)
 from .fresnel import fresnel_exact, fresnel_normal_incidence, fresnel_schlick
 
 __all__ = ["Microfacet", "Beckmann", "GGX", "FRESNEL_MODELS"]
@@ -150,57 +157,32 @@ class Microfacet(BRDFModel):
         ``(π/2 + θo)/2``. Gauss–Legendre of order ``n`` in ``u₁`` on each of the two pieces
         times the periodic midpoint rule (whole rings) or Gauss–Legendre on the arc (``2n``
         nodes), the ``u₁`` nodes of each piece mapped by ``v ↦ (1 − cos πv)/2`` (``Δ`` has
-        square-root ends). The transfer vanishes at the horizon (``G1 → 0``), so the square
-        rule converged too, but as ``O(n⁻²)`` across the kink and non-monotonically for GGX
-        at grazing views: order 64 1e-4–7e-4 off where this rule is within 1e-6
-        (``tests/capture/test_reference.py``).
+        square-root ends; :func:`~.base.visible_ring_rule`). The transfer vanishes at the
+        horizon (``G1 → 0``), so the square rule converged too, but as ``O(n⁻²)`` across the
+        kink and non-monotonically for GGX at grazing views: order 64 1e-4–7e-4 off where this
+        rule is within 1e-6 (``tests/capture/test_reference.py``).
         """
         if type(self).cdf_tan2 is Microfacet.cdf_tan2:
             return None
-        dt, dev = normal.dtype, normal.device
         t, b = orthonormal_basis(normal)
         cos_o = (normal * wo).sum(-1).clamp(-1.0, 1.0)
         th_o = torch.arccos(cos_o.clamp(0.0, 1.0))
-        sin_o = torch.sin(th_o)
-        phi_o = torch.atan2((wo * b).sum(-1), (wo * t).sum(-1))
-        x, w = (torch.as_tensor(v, dtype=torch.float64, device=dev)
-                for v in np.polynomial.legendre.leggauss(n))
-        x2, w2 = (torch.as_tensor(v, dtype=torch.float64, device=dev)
-                  for v in np.polynomial.legendre.leggauss(2 * n))
+        cot_o = (cos_o / torch.sin(th_o).clamp_min(1e-300))[:, None, None]
         ua = self.cdf_tan2(torch.tan(0.25 * math.pi - 0.5 * th_o) ** 2)
         ub = self.cdf_tan2(torch.tan(0.25 * math.pi + 0.5 * th_o) ** 2)
-        lo = torch.stack([torch.zeros_like(ua), ua], -1)                 # (N, 2)
+        lo = torch.stack([torch.zeros_like(ua), ua], -1)                 # (N, 2): whole, cut
         hi = torch.stack([ua, ub], -1)
-        # nodes through v ↦ (1 − cos πv)/2 on each piece: the arc's half-width Δ has square-root
-        # ends (Δ → π at the first ring the horizon cuts, → 0 at the last), which the map
-        # makes smooth
-        a = 0.5 * math.pi * (x + 1.0)
-        xv, wv = 0.5 * (1.0 - torch.cos(a)), w * (0.25 * math.pi) * torch.sin(a)
-        u1 = lo[..., None] + (hi - lo)[..., None] * xv                   # (N, 2, n)
-        wu1 = (hi - lo)[..., None] * wv
-        tan2 = self.sample_tan2(u1)
-        ct = 1.0 / torch.sqrt(1.0 + tan2)
-        st = torch.sqrt((1.0 - ct * ct).clamp_min(0.0))
-        cot2 = (ct * ct - st * st) / (2.0 * st * ct).clamp_min(1e-300)
-        cosd = -(cos_o / sin_o.clamp_min(1e-300))[:, None, None] * cot2
-        delta = torch.arccos(torch.nan_to_num(cosd, nan=0.0).clamp(-1.0, 1.0))
-        full = delta >= math.pi
-        mid = (torch.arange(2 * n, dtype=torch.float64, device=dev) + 0.5) / n - 1.0
-        xs = torch.where(full[..., None], mid, x2)                       # (N, 2, n, 2n)
-        ws = torch.where(full[..., None], torch.full_like(x2, 1.0 / n), w2)
-        ph = phi_o[:, None, None, None] + delta[..., None] * xs
-        wq = wu1[..., None] * ws * (delta[..., None] / (2.0 * math.pi))
-        ct4, st4 = ct[..., None].expand_as(ph), st[..., None].expand_as(ph)
-        h = ((st4 * torch.cos(ph))[..., None] * t[:, None, None, None]
-             + (st4 * torch.sin(ph))[..., None] * b[:, None, None, None]
-             + ct4[..., None] * normal[:, None, None, None])
-        m = normal.shape[0]
-        h = h.reshape(m, -1, 3)
+        ct, h, wq = visible_ring_rule(
+            normal, t, b, torch.atan2((wo * b).sum(-1), (wo * t).sum(-1)), lo, hi, n,
+            lambda u: 1.0 / torch.sqrt(1.0 + self.sample_tan2(u)),
+            lambda c, s_: torch.nan_to_num(
+                -cot_o * (c * c - s_ * s_) / (2.0 * s_ * c).clamp_min(1e-300), nan=0.0))
         wo_ = wo[:, None].expand_as(h)
         oh = (wo_ * h).sum(-1)
         wi = 2.0 * oh[..., None] * h - wo_
-        pdf = self.ndf(ct4.reshape(m, -1)) * ct4.reshape(m, -1) / (4.0 * oh.abs().clamp_min(1e-12))
-        return wi.to(dt), pdf.to(dt), wq.reshape(m, -1).to(dt)
+        pdf = self.ndf(ct) * ct / (4.0 * oh.abs().clamp_min(1e-12))
+        dt = normal.dtype
+        return wi.to(dt), pdf.to(dt), wq.to(dt)
 
     # -- SH domain -----------------------------------------------------------------------
     def sh_filter_exact(self, lmax: int) -> torch.Tensor:

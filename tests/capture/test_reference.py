@@ -180,6 +180,25 @@ def test_cuda_matches_cpu():
     np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-2)
 
 
+def _horizon_views():
+    """Normal ``+z`` seen from 8.6°, 30° and 2.9° above the horizon: ``(n, wo)``, each (3, 3)."""
+    n = torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float64)
+    wo = torch.nn.functional.normalize(torch.tensor(
+        [[0.9, 0.0, 0.15], [0.6, 0.3, 0.5], [0.0, 0.99, 0.05]], dtype=torch.float64), dim=-1)
+    return n, wo
+
+
+def _upper_hemisphere_grid(nt: int, nph: int):
+    """Midpoint grid of the hemisphere ``z > 0`` (the horizon a grid line): ``(d, dω)``."""
+    th = (torch.arange(nt, dtype=torch.float64) + 0.5) * (0.5 * math.pi / nt)
+    ph = (torch.arange(nph, dtype=torch.float64) + 0.5) * (2 * math.pi / nph)
+    d = torch.stack([torch.sin(th)[:, None] * torch.cos(ph), torch.sin(th)[:, None] *
+                     torch.sin(ph), torch.cos(th)[:, None].expand(nt, nph)], -1).reshape(-1, 3)
+    dw = (torch.sin(th)[:, None] * (0.5 * math.pi / nt) * (2 * math.pi / nph)).expand(
+        nt, nph).reshape(-1)
+    return d, dw
+
+
 def test_phong_rule_integrates_the_visible_lobe_to_the_hemisphere_grid():
     """Phong's horizon clamp is a jump inside the lobe sampler's square, over which the square
     product rule converges as ``O(1/n)`` (the glossy demo scene: 2.2% per pixel at 2^14 nodes,
@@ -189,17 +208,9 @@ def test_phong_rule_integrates_the_visible_lobe_to_the_hemisphere_grid():
     """
     import brdfcap.capture.reference as ref_mod
 
-    n = torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float64)
-    wo = torch.nn.functional.normalize(torch.tensor(
-        [[0.9, 0.0, 0.15], [0.6, 0.3, 0.5], [0.0, 0.99, 0.05]], dtype=torch.float64), dim=-1)
+    n, wo = _horizon_views()
     s = 6.0
-    nt, nph = 1600, 3200
-    th = (torch.arange(nt, dtype=torch.float64) + 0.5) * (0.5 * math.pi / nt)
-    ph = (torch.arange(nph, dtype=torch.float64) + 0.5) * (2 * math.pi / nph)
-    d = torch.stack([torch.sin(th)[:, None] * torch.cos(ph), torch.sin(th)[:, None] *
-                     torch.sin(ph), torch.cos(th)[:, None].expand(nt, nph)], -1).reshape(-1, 3)
-    dw = (torch.sin(th)[:, None] * (0.5 * math.pi / nt) * (2 * math.pi / nph)).expand(
-        nt, nph).reshape(-1)
+    d, dw = _upper_hemisphere_grid(1600, 3200)
     r = 2.0 * (n * wo).sum(-1, keepdim=True) * n - wo
     truth = torch.stack([((s + 1) / (2 * math.pi) * (d @ r[i]).clamp_min(0) ** s * dw).sum()
                          for i in range(3)])
@@ -226,17 +237,9 @@ def test_microfacet_rule_integrates_the_lobe_to_the_hemisphere_grid(name):
     """
     import brdfcap.capture.reference as ref_mod
 
-    n = torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float64)
-    wo = torch.nn.functional.normalize(torch.tensor(
-        [[0.9, 0.0, 0.15], [0.6, 0.3, 0.5], [0.0, 0.99, 0.05]], dtype=torch.float64), dim=-1)
+    n, wo = _horizon_views()
     m = make_brdf(name, kd=[0.0] * 3, f0=[0.5] * 3, sigma=0.3)
-    nt, nph = 2000, 4000
-    th = (torch.arange(nt, dtype=torch.float64) + 0.5) * (0.5 * math.pi / nt)
-    ph = (torch.arange(nph, dtype=torch.float64) + 0.5) * (2 * math.pi / nph)
-    d = torch.stack([torch.sin(th)[:, None] * torch.cos(ph), torch.sin(th)[:, None] *
-                     torch.sin(ph), torch.cos(th)[:, None].expand(nt, nph)], -1).reshape(-1, 3)
-    dw = (torch.sin(th)[:, None] * (0.5 * math.pi / nt) * (2 * math.pi / nph)).expand(
-        nt, nph).reshape(-1)
+    d, dw = _upper_hemisphere_grid(2000, 4000)
     truth = torch.stack([(m.eval_specular_cos(n[i].expand_as(d), d, wo[i].expand_as(d))[:, 0]
                           * dw).sum() for i in range(3)])
     probe = LatLongProbe(torch.ones(8, 16, 3, dtype=torch.float64))
