@@ -145,11 +145,14 @@ class BilinearFit:
 
     def summary(self) -> list[str]:
         """Report lines."""
+        def from_l(first) -> str:  # None: no band lost up to the fitted lmax
+            return "no band up to lmax" if first is None else f"l = {first}"
+
         s = [f"Problem 3 (lighting and BRDF unknown): bilinear factorisation, "
              f"{self.iterations} steps ("
              f"{'converged' if self.converged else 'NOT converged'}); "
-             f"lighting ill-conditioned from l = {self.lighting.ill_conditioned_from_l}, "
-             f"specular filter from l = {self.filter_ill_conditioned_from_l}."]
+             f"lighting ill-conditioned from {from_l(self.lighting.ill_conditioned_from_l)}, "
+             f"specular filter from {from_l(self.filter_ill_conditioned_from_l)}."]
         s += ["Ambiguity: " + a["name"] + " — " + a["resolution"] for a in self.ambiguities]
         return s
 

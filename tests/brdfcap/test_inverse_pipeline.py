@@ -180,6 +180,7 @@ def test_problem_both_reports_ambiguities(captures, tmp_path):
     assert {a["name"] for a in r["ambiguities"]} >= {"global scale"}
     html = (tmp_path / "o" / "report.html").read_text()
     assert "Ambiguities" in html
+    assert "l = None" not in html
     # the gauge-invariant products have their own table: one row per (product, l, m), and
     # the determined count per band agrees with results.json
     gi = r["gauge_invariant"]
@@ -371,3 +372,19 @@ def test_problem_aldrian_smith_with_texture_model(captures, tmp_path):
         assert abs(dc - dc_t) < 1e-2 * dc_t  # the same horizon-clamp model error
     assert any(x["name"].startswith("specular DC") for x in r["ambiguities"])
     assert max(abs(b) for b in a["texture_coefficients"]) < 0.2
+
+
+def test_problem_both_notes_say_where_bands_stop_in_words():
+    """``BilinearFit.summary`` (the report's "Notes from the fit"): a lighting with no band
+    lost said "ill-conditioned from l = None" (a Beckmann sphere's report); now words.
+    """
+    from types import SimpleNamespace
+
+    from brdfcap.fit.bilinear import BilinearFit
+
+    fit = SimpleNamespace(iterations=64, converged=True, ambiguities=[],
+                          lighting=SimpleNamespace(ill_conditioned_from_l=None),
+                          filter_ill_conditioned_from_l=3)
+    (line,) = BilinearFit.summary(fit)
+    assert "None" not in line
+    assert "lighting ill-conditioned from no band up to lmax, specular filter from l = 3" in line
