@@ -7,14 +7,12 @@ each other or ``conftest`` by name.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import torch
 
 from brdfcap.capture.reference import LatLongProbe, render_environment
 from brdfcap.capture.simulate import simulate
-from brdfcap.fit.envmap import reconstruct_envmap
 from brdfcap.reconstruct.mesh import uv_sphere
 
 __all__ = ["unit", "random_lighting", "views_above", "sh_probe", "render_reference",
@@ -103,15 +101,13 @@ def views_above(normal: torch.Tensor, gen: torch.Generator, spread: float = 0.8
 def sh_probe(light: torch.Tensor, height: int = 0) -> LatLongProbe:
     """Band-limited SH lighting ``((lmax+1)², C)`` as a lat-long probe the reference renderer reads.
 
-    ``Σ L_lm y_lm`` evaluated at the texel centres of a ``height × 2·height`` grid (default
-    ``max(32, 8 (lmax+1))`` rows, what ``brdfcap simulate`` uses for SH lighting) and
-    interpolated by Keys' cubic, which reproduces smooth lighting to ``O(h³)``
-    (``docs/simulator.md``). The truth of a fit of data rendered under it is then ``light``
-    itself — exact zeros included — while the rendering path is not the SH forward model.
+    ``Σ L_lm y_lm`` evaluated exactly at every direction the renderer asks for
+    (:meth:`~brdfcap.capture.reference.LatLongProbe.from_sh`; texels of a ``height × 2·height``
+    grid, default ``max(32, 8 (lmax+1))`` rows as ``brdfcap simulate``, for the texel sums).
+    The truth of a fit of data rendered under it is then ``light`` itself — exact zeros
+    included — while the rendering path is not the SH forward model (``docs/simulator.md``).
     """
-    lmax = math.isqrt(light.shape[0]) - 1
-    h = height or max(32, 8 * (lmax + 1))
-    return LatLongProbe(reconstruct_envmap(light, h, 2 * h), "cubic")
+    return LatLongProbe.from_sh(light, height)
 
 
 def render_reference(spec, light: torch.Tensor, normal: torch.Tensor, wo: torch.Tensor, *,

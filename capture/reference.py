@@ -154,6 +154,10 @@ class LatLongProbe:
     image: torch.Tensor
     interpolation: str = "bilinear"
     rotation: torch.Tensor | None = None
+    #: ``((lmax+1)², C)`` when the lighting *is* band-limited SH (:meth:`from_sh`): then
+    #: :meth:`radiance` evaluates it exactly at every direction and ``image`` holds its values
+    #: at the texel centres (for the texel sums); ``interpolation`` is not used for lookups.
+    sh: torch.Tensor | None = None
 
     def __post_init__(self):
         if self.interpolation not in INTERPOLATIONS:
@@ -162,6 +166,44 @@ class LatLongProbe:
         if self.image.ndim != 3:
             raise ValueError(f"probe must be (H, W, C), got {tuple(self.image.shape)}")
         self.image = self.image.to(torch.float64)
+        if self.sh is not None:
+            self.sh = self.sh.to(device=self.image.device, dtype=torch.float64)
+            if self.sh.ndim != 2 or self.sh.shape[1] != self.image.shape[2]:
+                raise ValueError(f"sh must be ((lmax+1)², {self.image.shape[2]}), got "
+                                 f"{tuple(self.sh.shape)}")
+
+    @classmethod
+    def from_sh(cls, coeffs: torch.Tensor, height: int = 0,
+                rotation: torch.Tensor | None = None) -> LatLongProbe:
+        """Band-limited SH lighting ``((lmax+1)², C)`` as a probe that evaluates it exactly.
+
+        ``radiance`` is ``Σ L_lm y_lm`` at each direction
+        (:func:`brdfcap.fit.envmap.evaluate_sh`), not an interpolation of texels: a
+        ``32 × 64`` Keys-cubic tabulation of the R&H 2001 Table 1 lighting is off by 1e-4 of
+        the mean radiance between the rows but by up to 18% within a row of the poles (the
+        stencil is clamped there), an error in the truth that no quadrature tolerance sees.
+        The texels (``height × 2·height``, default ``max(32, 8 (lmax+1))`` rows) hold the
+        same function at their centres for the texel quadratures.
+        """
+        from brdfcap.fit.envmap import reconstruct_envmap
+
+        c = coeffs.to(torch.float64)
+        c = c[:, None] if c.ndim == 1 else c
+        lmax = math.isqrt(c.shape[0]) - 1
+        h = height or max(32, 8 * (lmax + 1))
+        return cls(reconstruct_envmap(c, h, 2 * h), "cubic", rotation, c)
+
+    @property
+    def lookup(self) -> str:
+        """How :meth:`radiance` turns the texels into a function, in words."""
+        if self.sh is not None:
+            lmax = math.isqrt(self.sh.shape[0]) - 1
+            return f"exact: SH to l = {lmax} evaluated at every direction"
+        return self.interpolation
+
+    def unrotated(self) -> LatLongProbe:
+        """Return the same probe in its own frame (no rotation)."""
+        return LatLongProbe(self.image, self.interpolation, None, self.sh)
 
     @property
     def height(self) -> int:
@@ -176,18 +218,24 @@ class LatLongProbe:
     def to(self, device) -> LatLongProbe:
         """Return the probe on ``device``."""
         rot = None if self.rotation is None else self.rotation.to(device, torch.float64)
-        return LatLongProbe(self.image.to(device), self.interpolation, rot)
+        return LatLongProbe(self.image.to(device), self.interpolation, rot,
+                            None if self.sh is None else self.sh.to(device))
 
     def radiance(self, dirs: torch.Tensor) -> torch.Tensor:
         """Interpolated radiance ``(..., C)`` arriving from unit directions ``dirs`` ``(..., 3)``.
 
         Texel ``(v, u)`` sits at ``θ = π(v+½)/H``, ``φ = 2π(u+½)/W``; columns wrap around,
-        rows are clamped beyond the first and last row centres.
+        rows are clamped beyond the first and last row centres. A probe made by
+        :meth:`from_sh` evaluates its SH instead (exact).
         """
         h, w = self.height, self.width
         img = self.image.to(dirs.device)
         if self.rotation is not None:  # probe-frame direction Rᵀ d (row vectors: d R)
             dirs = dirs @ self.rotation.to(device=dirs.device, dtype=dirs.dtype)
+        if self.sh is not None:
+            from brdfcap.fit.envmap import evaluate_sh
+
+            return evaluate_sh(self.sh, dirs)
         z = dirs[..., 2].clamp(-1.0, 1.0)
         theta = torch.acos(z)
         phi = torch.atan2(dirs[..., 1], dirs[..., 0]) % (2.0 * math.pi)
@@ -617,7 +665,7 @@ def _split_probe(p: LatLongProbe, n_bright: int = _BRIGHT_TEXELS) -> _Split:
             thr = max(float(top[-1]), _BRIGHT_RATIO * mean)
             k = int((inner > thr).sum())
     low_img = img.clamp(max=thr) if k else img
-    low = LatLongProbe(low_img, p.interpolation, p.rotation)
+    low = LatLongProbe(low_img, p.interpolation, p.rotation, None if k else p.sh)
     f64 = torch.float64
     if k == 0:
         z = torch.zeros(0, dtype=f64, device=dev)
@@ -671,7 +719,7 @@ def _subcell_grid(p: LatLongProbe, k: int):
         st = torch.sin(th)[:, None]
         d = torch.stack([st * torch.cos(ph)[None], st * torch.sin(ph)[None],
                          torch.cos(th)[:, None].expand(-1, wk)], -1)
-        lw = LatLongProbe(p.image, p.interpolation).radiance(d)
+        lw = p.unrotated().radiance(d)
     return th, lw * dw[:, None, None]
 
 

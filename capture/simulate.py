@@ -364,6 +364,9 @@ def load_scene(path: str | Path) -> Scene:
     if render["probe_interpolation"] not in ("bilinear", "cubic"):
         raise CaptureError("scene key 'render.probe_interpolation' must be bilinear or cubic",
                            path)
+    if "probe_interpolation" in rt and kind == "environment" and not probes:
+        notes.append("render.probe_interpolation is not used: SH lighting is evaluated exactly "
+                     "at every direction (docs/simulator.md); it applies to probe files")
     for msg in notes:
         warnings.warn(f"{path}: {msg}", UserWarning, stacklevel=2)
     return Scene(
@@ -491,15 +494,11 @@ class _Renderer:
                 rot = None if p_["rotation"] is None else torch.as_tensor(p_["rotation"])
                 self.probes.append((LatLongProbe(torch.as_tensor(p_["image"]), interp, rot),
                                     torch.as_tensor(p_["weight"], dtype=torch.float64)))
-            if not scene.probes:  # SH lighting as a smooth probe: cubic reproduces it to O(h³)
-                lmax = math.isqrt(scene.light_sh.shape[0]) - 1
-                h = scene.render["sh_probe_height"] or max(32, 8 * (lmax + 1))
-                from brdfcap.fit.envmap import reconstruct_envmap
-
-                img = reconstruct_envmap(torch.as_tensor(scene.light_sh), h, 2 * h)
-                self.sh_probe_shape = (h, 2 * h)
-                self.probes.append((LatLongProbe(img, interp, None),
-                                    torch.ones(3, dtype=torch.float64)))
+            if not scene.probes:  # SH lighting, evaluated exactly at every node
+                p_sh = LatLongProbe.from_sh(torch.as_tensor(scene.light_sh),
+                                            scene.render["sh_probe_height"])
+                self.sh_probe_shape = (p_sh.height, p_sh.width)
+                self.probes.append((p_sh, torch.ones(3, dtype=torch.float64)))
             self.probe = self.probes[0][0]
 
     def environment(self, nrm: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
@@ -648,7 +647,7 @@ def _renderer_record(scene: Scene, renderer: _Renderer) -> dict:
                seed=scene.render["seed"], lights="closed form (exact)")
     if renderer.probe is not None:
         rec["probe"] = {"shape": list(renderer.probe.image.shape[:2]),
-                        "interpolation": renderer.probe.interpolation,
+                        "interpolation": renderer.probe.lookup,
                         "source": "file" if scene.probes else "SH reconstruction"}
         if len(renderer.probes) > 1:
             rec["probe"]["count"] = len(renderer.probes)
@@ -752,24 +751,79 @@ def _interreflection_policy(scene: Scene, mesh) -> tuple[dict | None, str]:
             "(brdfcap.capture.interreflection)")
 
 
+class _NegativeRadiance:
+    """Pixels of the noise-free render that the capture loader will mask as negative.
+
+    ``brdfcap run`` masks a pixel any of whose channels is below ``-NEGATIVE_SIGMAS`` × the
+    read-noise floor (``capture.load``; below 0 without a noise model): a camera records no
+    negative radiance. A scene whose lighting is negative in places (band-limited SH rings
+    below zero) renders such pixels, and masking them by their *noisy* value keeps the ones
+    the noise lifted: a bias (the glossy demo's blue L00 3-5 standard errors high under the
+    published Grace table; ``docs/simulator.md``).
+    """
+
+    def __init__(self, scene: Scene):
+        from .load import NEGATIVE_SIGMAS
+
+        floor = 0.0 if scene.noise is None else math.sqrt(float(scene.noise.variance(
+            np.zeros(1))[0]))
+        self.threshold = -NEGATIVE_SIGMAS * floor
+        self.pixels = 0
+        self.views: list[int] = []
+        self.minimum = np.full(3, np.inf)
+
+    def add(self, view: int, img: np.ndarray) -> None:
+        """Count view ``view``'s pixels ``(H, W, 3)`` (before exposure and noise)."""
+        bad = (img < self.threshold).any(-1)
+        n = int(bad.sum())
+        if n:
+            self.pixels += n
+            self.views.append(view)
+            self.minimum = np.minimum(self.minimum, img.reshape(-1, img.shape[-1]).min(0))
+
+    def record(self) -> dict:
+        """``ground_truth.json: negative_radiance``."""
+        return {"pixels": self.pixels, "views": self.views,
+                "minimum": [float(x) for x in self.minimum],
+                "threshold": self.threshold,
+                "meaning": "pixels of the noise-free render below -NEGATIVE_SIGMAS x the read "
+                           "noise (capture.load): brdfcap run masks them"}
+
+
 def render_accuracy_warnings(capture: str | Path) -> list[str]:
     """One line per rendered term whose measured error missed the scene's tolerance.
 
     Reads ``ground_truth.json: renderer.measured`` of the capture ``capture`` (what the
     reference renderer measured of its own quadratures, ``docs/simulator.md``, "Measured, not
-    assumed"); empty when every term converged or the SH renderer was used.
+    assumed"); empty when every term converged or the SH renderer was used. A line first when
+    the render has pixels the loader will mask as negative (``negative_radiance``,
+    :class:`_NegativeRadiance`).
     """
     gt = Path(capture) / "ground_truth.json"
     if not gt.is_file():
         return []
     try:
-        rec = json.loads(gt.read_text()).get("renderer", {})
+        doc = json.loads(gt.read_text())
+        rec = doc.get("renderer", {})
         tol = float(rec.get("rel_tol", math.nan))
         terms = dict(rec.get("measured") or {})
+        neg = doc.get("negative_radiance")
+        neg = neg if isinstance(neg, dict) and int(neg.get("pixels", 0)) > 0 else None
     except (OSError, ValueError, TypeError, AttributeError) as exc:
         return [f"{gt}: not read ({exc}); the render's accuracy is unknown (re-run "
                 f"brdfcap simulate)"]
     out = []
+    if neg is not None:
+        lo = [float(x) for x in neg.get("minimum", [])]
+        ch = "RGB"[int(np.argmin(lo))] if len(lo) == 3 else "?"
+        out.append(f"{gt}: negative_radiance: {int(neg['pixels'])} pixels of the noise-free "
+                   f"render are below {float(neg.get('threshold', 0.0)):.3g} (down to "
+                   f"{min(lo, default=math.nan):.3g} in {ch}): the scene's lighting is negative "
+                   f"in places (band-limited SH rings below zero: R&H 2001 Table 1's Grace in "
+                   f"21-33% of directions) and the material reflects it; brdfcap run masks "
+                   f"them, and masking by the noisy value biases what is left. Fix: give "
+                   f"[lighting] a non-negative lighting (sh = \"grace-rh2001-nonneg\", or a "
+                   f"larger L00)")
     for name, t in terms.items():
         if not isinstance(t, dict) or t.get("converged", True):
             continue
@@ -813,6 +867,7 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
     poses = view_poses(scene.n_views, scene.distance, scene.elevation_deg, centre)
     renderer = _Renderer(scene)
+    neg = _NegativeRadiance(scene)
     images = []
     # shadows only where the shape needs them: a convex mesh (or the analytic sphere) cannot
     # shadow itself, so no shadow ray is cast for it
@@ -831,6 +886,7 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
         light = scene.lights[i % len(scene.lights)] if scene.lights else None
         img, ns = _render_view(scene, mesh, rc, pose, light, cast_shadows, renderer, inter)
         n_shadowed += ns
+        neg.add(i, img)
         img = img * scene.exposure
         if raw_writer is not None:  # [camera_raw]: raw DNGs through the inverse raw chain
             entry = {**raw_writer.write_view(i, img / scene.exposure), "world_to_camera": pose}
@@ -898,6 +954,8 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
              "views": {"target": centre.tolist(), "distance": scene.distance}}
     if scene.warnings:
         truth["warnings"] = scene.warnings
+    if neg.pixels and raw_writer is None:
+        truth["negative_radiance"] = neg.record()
     if spec is not None:
         truth["brdf"] = {"model": spec.model, "parameters": spec.parameters(),
                          "model_parameters": spec.brdf.to_json()["parameters"]}

@@ -53,6 +53,7 @@ __all__ = [
     "sh_window",
     "project_envmap",
     "reconstruct_envmap",
+    "evaluate_sh",
 ]
 
 FRAME_DESCRIPTION = (
@@ -245,3 +246,49 @@ def reconstruct_envmap(coeffs: torch.Tensor, height: int, width: int) -> torch.T
             rb[:, 1: l + 1] += r2 * pl[:, 1:, None] * c[cc - l: cc].flip(0)[None]
     img = torch.einsum("hmc,mw->hwc", ra, cos_m) + torch.einsum("hmc,mw->hwc", rb, sin_m)
     return img[..., 0] if squeeze else img
+
+
+#: Directions per block of :func:`evaluate_sh` (its Legendre table is ``block × (L+1)(L+2)/2``).
+_EVAL_BLOCK = 1 << 16
+
+
+def evaluate_sh(coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Evaluate ``Σ L_lm y_lm`` at unit directions ``dirs`` ``(..., 3)``: ``(..., C)`` float64.
+
+    The route of :func:`reconstruct_envmap` at arbitrary directions instead of texel centres:
+    orthonormal associated Legendre functions of ``cos θ`` times ``√2 cos mφ`` (``m > 0``) and
+    ``√2 sin |m|φ`` (``m < 0``), the real SH of R&H 2001 eq. 3 in the frame of the module doc.
+    Exact for band-limited lighting (no interpolation), and an assembly other than
+    :func:`brdfcap.fit.sh.real_sh`'s Cartesian polynomials — what the reference renderer
+    integrates when the lighting *is* SH (``capture.reference.LatLongProbe.from_sh``).
+    ``coeffs`` ``((lmax+1)², C)`` or ``((lmax+1)²,)`` (then the result drops ``C``).
+    """
+    squeeze = coeffs.ndim == 1
+    c = (coeffs[:, None] if squeeze else coeffs).to(torch.float64)
+    k = c.shape[0]
+    lmax = math.isqrt(k) - 1
+    if (lmax + 1) ** 2 != k:
+        raise ValueError(f"{k} coefficients is not (lmax+1)**2")
+    c = c.to(dirs.device)
+    flat = dirs.reshape(-1, 3).to(torch.float64)
+    out = flat.new_empty(flat.shape[0], c.shape[1])
+    r2 = math.sqrt(2.0)
+    m = torch.arange(1, lmax + 1, dtype=torch.float64, device=flat.device)
+    # per band: the columns of the Legendre table and the coefficient rows, m > 0 and m < 0
+    rows = [(l * (l + 1) // 2, l * (l + 1)) for l in range(lmax + 1)]
+    for a in range(0, flat.shape[0], _EVAL_BLOCK):
+        d = flat[a:a + _EVAL_BLOCK]
+        d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        p = legendre_normalized(d[:, 2].clamp(-1.0, 1.0), lmax)            # (n, T)
+        phi = torch.atan2(d[:, 1], d[:, 0])
+        cm, sm = torch.cos(phi[:, None] * m), torch.sin(phi[:, None] * m)  # (n, lmax)
+        acc = d.new_zeros(d.shape[0], c.shape[1])
+        for l, (base, cc) in enumerate(rows):
+            acc += p[:, base:base + 1] * c[cc][None]
+            if l:
+                pl = r2 * p[:, base + 1: base + l + 1]                        # (n, l) m = 1..l
+                acc += (pl * cm[:, :l]) @ c[cc + 1: cc + l + 1]
+                acc += (pl * sm[:, :l]) @ c[cc - l: cc].flip(0)
+        out[a:a + _EVAL_BLOCK] = acc
+    out = out.reshape(*dirs.shape[:-1], c.shape[1])
+    return out[..., 0] if squeeze else out

@@ -611,5 +611,24 @@ def lmax_suggestion(results: dict) -> str | None:
     if sug > req:
         return (f"the images determine every observable band up to l = {sug}: --lmax {sug} "
                 f"(or --lmax auto) would report them")
-    return (f"the images determine every observable band only up to l = {sug}: --lmax {sug} "
-            f"(or --lmax auto) reports just what they determine")
+    # bounded bands above the suggestion are claims too ("no power above X"): say so, or the
+    # sentence reads as contradicting the measured row's "bands l <= N determined"
+    bounded = [int(b["l"]) for b in lt.get("bands") or []
+               if isinstance(b, dict) and b.get("bounded") and isinstance(b.get("l"), int)
+               and b["l"] > sug]
+    above = (f" and bound l = {_band_list(bounded)} near zero (no power above their bound)"
+             if bounded else "")
+    return (f"the images determine every observable band only up to l = {sug}{above}: "
+            f"--lmax {sug} (or --lmax auto) reports just what they determine")
+
+
+def _band_list(ls: list[int]) -> str:
+    """``[3, 4, 5, 7]`` as ``"3–5, 7"``."""
+    out, i = [], 0
+    while i < len(ls):
+        j = i
+        while j + 1 < len(ls) and ls[j + 1] == ls[j] + 1:
+            j += 1
+        out.append(str(ls[i]) if j == i else f"{ls[i]}–{ls[j]}")
+        i = j + 1
+    return ", ".join(out)

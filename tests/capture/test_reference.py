@@ -139,6 +139,45 @@ def test_mirror_is_a_probe_lookup():
     np.testing.assert_allclose(b.numpy(), 0.5 * img.reshape(-1, 3)[idx].numpy(), rtol=1e-9)
 
 
+def test_sh_lighting_is_rendered_exactly_at_the_poles():
+    """SH lighting is a function the renderer evaluates exactly (``LatLongProbe.from_sh``).
+
+    It was its 32 x 64 texels under Keys-cubic interpolation: 1e-4 of the mean between the
+    rows, up to 18% within a row of the poles (the stencil clamped there) — an error in the
+    integrand that no quadrature tolerance sees. A mirror looking at directions near either
+    pole (and a rotated probe) shows ``ks`` times the SH value to rounding; the old cubic
+    tabulation of the same lighting is the counter-example.
+    """
+    sh = torch.as_tensor(np.asarray(SH_PRESETS["grace-rh2001"]), dtype=torch.float64)
+    g = torch.Generator().manual_seed(3)
+    az = 2 * math.pi * torch.rand(64, generator=g, dtype=torch.float64)
+    th = torch.cat([0.03 * torch.rand(32, generator=g, dtype=torch.float64),
+                    math.pi - 0.03 * torch.rand(32, generator=g, dtype=torch.float64)])
+    r = torch.stack([th.sin() * az.cos(), th.sin() * az.sin(), th.cos()], -1)
+    n = torch.nn.functional.normalize(r + torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+                                      dim=-1)
+    wo = 2 * (n * r).sum(-1, keepdim=True) * n - r
+    mirror = make_brdf("mirror", kd=[0.0] * 3, ks=[0.5] * 3)
+    exact = 0.5 * (envmap.evaluate_sh(sh, r))
+    probe = LatLongProbe.from_sh(sh)
+    assert probe.height == 32 and "exact" in probe.lookup
+    torch.testing.assert_close(render_environment(mirror, n, wo, probe), exact, rtol=0,
+                               atol=1e-12)
+    old = LatLongProbe(envmap.reconstruct_envmap(sh, 32, 64), "cubic")
+    assert float((render_environment(mirror, n, wo, old) - exact).abs().max()) > 0.02
+    # rotated: a light the SH shows at d arrives from R d
+    rot = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    rot = rot @ torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
+                             dtype=torch.float64)
+    turned = LatLongProbe.from_sh(sh, rotation=rot)
+    torch.testing.assert_close(turned.radiance(r), envmap.evaluate_sh(sh, r @ rot), rtol=0,
+                               atol=1e-12)
+    # the texels hold the same function at their centres (the texel sums read them)
+    torch.testing.assert_close(probe.image.reshape(-1, 3),
+                               envmap.evaluate_sh(sh, envmap.latlong_directions(32, 64)
+                                                  .reshape(-1, 3)), rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("spec", [
     BRDFSpec("lambertian", kd=[0.6, 0.4, 0.2]),
     BRDFSpec("phong", kd=[0.5, 0.3, 0.2], ks=[0.3, 0.3, 0.3], s=64.0),

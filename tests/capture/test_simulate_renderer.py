@@ -84,7 +84,7 @@ ks = [0.6, 0.6, 0.6]
 s = 200.0
 [lighting]
 kind = "environment"
-sh = "grace-rh2001"
+sh = "grace-rh2001-nonneg"
 [camera]
 width = 8
 height = 8
@@ -128,6 +128,61 @@ def test_a_render_that_missed_its_tolerance_is_said_by_simulate_and_run(tmp_path
     (tmp_path / "bad" / "ground_truth.json").write_text("{not json")
     (bad,) = render_accuracy_warnings(tmp_path / "bad")
     assert "ground_truth.json: not read" in bad
+
+
+NEGATIVE = """
+name = "negative"
+[geometry]
+shape = "sphere"
+[material]
+model = "phong"
+albedo = [0.2, 0.2, 0.2]
+ks = [0.6, 0.6, 0.6]
+s = 6.0
+[lighting]
+kind = "environment"
+sh = "{preset}"
+[camera]
+width = 24
+height = 24
+[views]
+count = 2
+[noise]
+relative = 0.01
+read = 0.002
+[render]
+rel_tol = 1e-2
+"""
+
+
+@pytest.mark.parametrize("preset", ["grace-rh2001", "grace-rh2001-nonneg"])
+def test_pixels_the_loader_will_mask_as_negative_are_said(tmp_path, preset):
+    """A glossy sphere under the published Grace table (negative in 21-33% of directions)
+    renders pixels below -5 read-noise sigma, which ``brdfcap run`` masks; masking by the noisy
+    value biased the glossy demo's blue L00 by 3-5 standard errors. ``ground_truth.json``
+    records them (``negative_radiance``), simulate and run say so in one line naming the key
+    and the fix, and the non-negative preset renders none.
+    """
+    from brdfcap.capture.images import read_image
+    from brdfcap.capture.load import NEGATIVE_SIGMAS
+    from brdfcap.capture.simulate import render_accuracy_warnings
+
+    (tmp_path / "s.toml").write_text(NEGATIVE.format(preset=preset))
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    gt = json.loads((cap / "ground_truth.json").read_text())
+    lines = [w for w in render_accuracy_warnings(cap) if "negative_radiance" in w]
+    if preset == "grace-rh2001-nonneg":
+        assert "negative_radiance" not in gt and not lines
+        return
+    neg = gt["negative_radiance"]
+    assert neg["threshold"] == pytest.approx(-NEGATIVE_SIGMAS * 0.002)
+    assert neg["pixels"] > 0 and min(neg["minimum"]) < neg["threshold"]
+    # the noisy images hold about that many pixels the loader's rule would mask
+    imgs = [np.asarray(read_image(f), np.float64) for f in sorted((cap / "images").glob("*"))]
+    masked = sum(int((im < neg["threshold"]).any(-1).sum()) for im in imgs)
+    assert 0.5 * neg["pixels"] <= masked <= 1.5 * neg["pixels"] + 5
+    (line,) = lines
+    assert "ground_truth.json: negative_radiance" in line and "grace-rh2001-nonneg" in line
 
 
 def test_a_material_that_reflects_nothing_is_one_line(tmp_path):

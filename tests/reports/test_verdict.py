@@ -43,3 +43,24 @@ def test_the_likely_causes_are_listed_where_the_verdict_points():
     ok = _results(True)
     assert headline(ok)["causes"] == [] and "likely causes" not in headline(ok)["verdict"][1]
 
+
+
+def test_the_lmax_suggestion_names_the_bounded_bands_above_it():
+    """The glossy demo read "bands l <= 6 determined; l = 3-6 bounded" and then "the images
+    determine every observable band only up to l = 2": both true (a bounded band is a claim of
+    no power, not a recovered band), but the second read as a contradiction. The suggestion now
+    names the bounded bands above it.
+    """
+    from brdfcap.reports.views import lmax_suggestion
+
+    bands = [{"l": l, "determined": l <= 2, "bounded": 3 <= l <= 6 or l == 8}
+             for l in range(13)]
+    res = {"lighting": {"lmax": 12, "suggested_lmax": 2, "bands": bands}}
+    text = lmax_suggestion(res)
+    assert "only up to l = 2 and bound l = 3–6, 8 near zero" in text, text
+    assert "--lmax 2" in text
+    for b in bands:
+        b["bounded"] = False
+    assert "bound" not in lmax_suggestion(res)
+    res["lighting"]["suggested_lmax"] = 12
+    assert lmax_suggestion(res) is None
