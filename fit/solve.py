@@ -634,18 +634,26 @@ def _live_columns(g: torch.Tensor) -> torch.Tensor:
     return (g != 0).any(-1)
 
 
+#: From this order up a dense factorisation keeps the process's threads (:func:`_lapack_one_thread`).
+LAPACK_PARALLEL_MIN = 600
+
+
 @contextmanager
-def _lapack_one_thread():
-    """Run the dense factorisations of one (K ≤ ~1000) matrix on one thread, then restore.
+def _lapack_one_thread(k: int = 0):
+    """Run the dense factorisation of one ``k × k`` matrix on one thread when it is small.
 
     Measured on the shared 2-core VM (load 4): ``eigh`` of 234² costs 2.7 ms CPU on one thread
     and 4–8 ms on two, 625² 32 against 54–78 ms, 1024² 150 against 165 ms, and inside the
     309k-sample Lambertian fit at two threads its 26 ``eigh`` took 7.3 s CPU (0.03 s on one):
-    LAPACK's many small parallel regions wait for a second core the other jobs hold. The
-    thread count is per process; nothing else runs while it is lowered.
+    LAPACK's many small parallel regions wait for a second core the other jobs hold. From
+    ``k`` = :data:`LAPACK_PARALLEL_MIN` up the work per region is large enough for the second
+    core to pay: wall time of ``eigh`` on an idle 2-core VM, one thread against two, 441²
+    0.024 / 0.025 s, 625² 0.056 / 0.036, 1024² 0.26 / 0.15, 1681² 1.1–1.25 / 0.61 (session 12;
+    the one-view glossy fits solve at 1681 columns). The thread count is per process;
+    nothing else runs while it is lowered.
     """
     threads = torch.get_num_threads()
-    if threads == 1:
+    if threads == 1 or k >= LAPACK_PARALLEL_MIN:
         yield
         return
     torch.set_num_threads(1)
@@ -666,7 +674,7 @@ def _eigh_live(g: torch.Tensor, sc: torch.Tensor, live: torch.Tensor
     idx = torch.nonzero(live).flatten()
     nl = int(idx.numel())
     gl = g if nl == kc else g[idx[:, None], idx[None, :]]
-    with _lapack_one_thread():
+    with _lapack_one_thread(nl):
         try:
             ev, u = torch.linalg.eigh(gl / sc)
         except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
@@ -692,7 +700,7 @@ def _shifted_inverse(m: torch.Tensor, lam: float, live: torch.Tensor) -> torch.T
     else:
         ml = m[idx[:, None], idx[None, :]]
     ml.diagonal().add_(lam)
-    with _lapack_one_thread():
+    with _lapack_one_thread(int(ml.shape[0])):
         inv_l = torch.cholesky_inverse(torch.linalg.cholesky(ml))
     if int(idx.numel()) == kc:
         return inv_l
