@@ -634,7 +634,7 @@ def _live_columns(g: torch.Tensor) -> torch.Tensor:
     return (g != 0).any(-1)
 
 
-#: From this order up a dense factorisation keeps the process's threads (:func:`_lapack_one_thread`).
+#: From this order up a dense factorisation keeps the process threads (:func:`_lapack_one_thread`).
 LAPACK_PARALLEL_MIN = 600
 
 
