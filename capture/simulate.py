@@ -816,14 +816,17 @@ def render_accuracy_warnings(capture: str | Path) -> list[str]:
     if neg is not None:
         lo = [float(x) for x in neg.get("minimum", [])]
         ch = "RGB"[int(np.argmin(lo))] if len(lo) == 3 else "?"
+        thr = float(neg.get("threshold", 0.0))
+        noisy = thr < 0.0   # the loader's threshold is -5 sigma of the read noise, else 0
         out.append(f"{gt}: negative_radiance: {int(neg['pixels'])} pixels of the noise-free "
-                   f"render are below {float(neg.get('threshold', 0.0)):.3g} (down to "
-                   f"{min(lo, default=math.nan):.3g} in {ch}): the scene's lighting is negative "
-                   f"in places (band-limited SH rings below zero: R&H 2001 Table 1's Grace in "
-                   f"21-33% of directions) and the material reflects it; brdfcap run masks "
-                   f"them, and masking by the noisy value biases what is left. Fix: give "
-                   f"[lighting] a non-negative lighting (sh = \"grace-rh2001-nonneg\", or a "
-                   f"larger L00)")
+                   f"render are below {'0' if thr == 0 else f'{thr:.3g}'}"
+                   + f" (down to {min(lo, default=math.nan):.3g} in {ch}): the scene's "
+                   f"lighting is negative in places (band-limited SH rings below zero: R&H 2001 "
+                   f"Table 1's Grace in 21-33% of directions) and the material reflects it; "
+                   f"brdfcap run masks them (no camera records negative radiance)"
+                   + (", and masking by the noisy value biases what is left" if noisy else "")
+                   + ". Fix: give [lighting] a non-negative lighting "
+                   "(sh = \"grace-rh2001-nonneg\", or a larger L00)")
     for name, t in terms.items():
         if not isinstance(t, dict) or t.get("converged", True):
             continue

@@ -909,13 +909,18 @@ def _adequacy(resid: torch.Tensor, wres: torch.Tensor, chi2_t: torch.Tensor, dof
                        f"structure the data do not")
     structured = npair > 0 and math.isfinite(rho) and rho > max(0.2, 3.0 / math.sqrt(npair))
     widen = 1.0
+    # the residual's size in words: without a noise model the structure test has no scale of
+    # its own (a noise-free simulation's 0.01% quadrature ripple is "structured" too)
+    rms_txt = (f"RMS {100 * float(rel_rms.max()):.2g}% of the mean signal"
+               if rel_rms.numel() and math.isfinite(float(rel_rms.max())) else "")
     if structured:
         ok = False
         widen = math.sqrt((1.0 + rho) / max(1.0 - rho, 1e-3))
-        causes.append(f"spatially structured residual (lag-1 autocorrelation {rho:.2f}): "
+        what = f"lag-1 autocorrelation {rho:.2f}" + (f", {rms_txt}" if rms_txt else "")
+        causes.append(f"spatially structured residual ({what}): "
                       "an effect the model lacks, so the intervals are widened by "
                       f"{widen:.2g}x" if applied else
-                      f"spatially structured residual (lag-1 autocorrelation {rho:.2f}): "
+                      f"spatially structured residual ({what}): "
                       f"an effect the model lacks; its errors would need widening by "
                       f"{widen:.2g}x (judged after the fit: not applied)")
     if not ok:
@@ -940,7 +945,9 @@ def _adequacy(resid: torch.Tensor, wres: torch.Tensor, chi2_t: torch.Tensor, dof
     elif ok:
         verdict = ("the model explains the data: " + (
             "chi2/nu consistent with 1 and " if noise_known else "") +
-            "no structure in the residual")
+            "no structure in the residual" + (
+                f" ({rms_txt}; no noise model to compare its size with)"
+                if not noise_known and rms_txt else ""))
     else:
         verdict = ("the model does not explain the data; claims are widened (see "
                    "likely_causes)" if applied else

@@ -183,6 +183,7 @@ def test_pixels_the_loader_will_mask_as_negative_are_said(tmp_path, preset):
     assert 0.5 * neg["pixels"] <= masked <= 1.5 * neg["pixels"] + 5
     (line,) = lines
     assert "ground_truth.json: negative_radiance" in line and "grace-rh2001-nonneg" in line
+    assert "below -0.01 " in line and "biases what is left" in line, line
 
 
 def test_a_material_that_reflects_nothing_is_one_line(tmp_path):

@@ -318,3 +318,27 @@ def test_a_problem_without_its_own_verdict_is_judged_from_its_prediction():
     assert not bad["adequate"] and bad["chi2_reduced"] is None
     assert "not applied" in bad["likely_causes"][0] and "lower bounds" in bad["verdict"]
     assert bad["widen_applied"] is False
+
+
+def test_without_a_noise_model_the_verdict_gives_the_residual_its_size():
+    """No noise model: the structure test has no scale of its own, so a noise-free simulation's
+    0.01% quadrature ripple read "does not explain the data" with nothing saying how small it
+    was. The cause (and an adequate verdict) now state the residual's RMS over the signal.
+    """
+    from brdfcap.fit.conditioning import residual_adequacy
+
+    g = torch.Generator().manual_seed(4)
+    n = _scan(unit(2000, g, hemisphere=True))
+    b = (0.4 * n[:, 2:3] + 0.6).expand(-1, 3).clone()
+    ripple = b * (1 + 1e-4 * torch.sin(6 * n[:, :1]))   # smooth, 1e-4 of the signal
+    tiny = residual_adequacy(ripple, b, None)
+    assert not tiny["adequate"]
+    (cause,) = [c for c in tiny["likely_causes"] if c.startswith("spatially structured")]
+    rms = 100 * max(tiny["residual_rel_rms"])
+    assert 0.003 < rms < 0.01 and f"RMS {rms:.2g}% of the mean signal" in cause, cause
+    white = b + 1e-3 * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    ok = residual_adequacy(white, b, None)
+    assert ok["adequate"] and "% of the mean signal; no noise model" in ok["verdict"], ok
+    # with a noise model the adequate verdict stays as it was (χ² gives the scale)
+    assert "of the mean signal" not in residual_adequacy(
+        white, b, torch.full_like(b, 1e-6))["verdict"]
