@@ -2,7 +2,8 @@
 
 Renders the scene once without noise (``brdfcap simulate`` of a copy without ``[noise]``),
 then for each seed adds the scene's ``[noise]`` (read, gain, relative; the simulator's formula)
-to the images, writes the noise model into the capture, runs ``brdfcap run`` and prints, per
+to the images (then clips them at the scene's ``saturation``, if any), writes the noise model
+(and the clip level) into the capture, runs ``brdfcap run`` and prints, per
 channel, the RMS of the truth z-scores ``(L̂ − L)/σ`` over bands 0–2 and L00's z. A channel whose
 z RMS stays well above 1 over seeds is biased beyond its stated errors; the same numbers with
 the noise-free capture separate the render from the noise. Found the glossy demo's blue bias
@@ -37,14 +38,17 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, default=None, help="keep the captures here")
     args = ap.parse_args(argv)
     text = args.scene.read_text()
-    noise = tomllib.loads(text).get("noise")
+    doc = tomllib.loads(text)
+    noise, sat = doc.get("noise"), doc.get("saturation")
     if not noise:
         print(f"{args.scene}: no [noise] table to draw from", file=sys.stderr)
         return 2
     work = args.work or Path(tempfile.mkdtemp(prefix="noise_seeds_"))
     work.mkdir(parents=True, exist_ok=True)
     clean = work / "scene_nonoise.toml"
-    clean.write_text(re.sub(r"\n\[noise\][^\[]*", "\n", text))
+    # noise-free and unclipped: the noise goes in first, then the clip (the simulator's order)
+    clean.write_text(re.sub(r"\n\[noise\][^\[]*", "\n",
+                            re.sub(r"(?m)^saturation\s*=.*$", "", text)))
     exe = str(Path(sys.executable).with_name("brdfcap"))
     base = work / "nonoise"
     subprocess.run([exe, "simulate", str(clean), str(base)], check=True, capture_output=True)
@@ -54,15 +58,18 @@ def main(argv=None) -> int:
         shutil.rmtree(cap, ignore_errors=True)
         shutil.copytree(base, cap)
         toml = (cap / "capture.toml").read_text()
-        (cap / "capture.toml").write_text(toml.replace(
-            "[lighting]", f"[noise]\nread = {read}\ngain = {gain}\nrelative = {rel}\n\n"
-                          "[lighting]", 1))
+        toml = toml.replace("[lighting]", f"[noise]\nread = {read}\ngain = {gain}\n"
+                                          f"relative = {rel}\n\n[lighting]", 1)
+        if sat is not None:
+            toml = toml.replace("\n[geometry]", f"saturation = {float(sat)}\n\n[geometry]", 1)
+        (cap / "capture.toml").write_text(toml)
         rng = np.random.default_rng(seed)
         for f in sorted((cap / "images").glob("*.exr")):
             img = np.asarray(read_image(f), np.float64)
             s = np.clip(img, 0.0, None)
             sd = np.sqrt(read ** 2 + gain * s + (rel * s) ** 2)
-            write_image(f, img + rng.standard_normal(img.shape) * sd)
+            img = img + rng.standard_normal(img.shape) * sd
+            write_image(f, img if sat is None else np.minimum(img, float(sat)))
         subprocess.run([exe, "run", str(cap), "--out", str(cap / "res"), "--lmax", args.lmax],
                        check=True, capture_output=True)
         r = json.loads((cap / "res" / "results.json").read_text())
