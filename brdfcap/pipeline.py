@@ -119,6 +119,14 @@ class RunOutcome:
     fit: FitResult | None = None
 
 
+def _clip_levels(capture: Capture) -> torch.Tensor | None:
+    """``(V,)`` clip level per view (``View.info["clip_level"]``; inf where none), or None."""
+    lv = [v.info.get("clip_level") for v in capture.views]
+    if all(x is None for x in lv):
+        return None
+    return torch.tensor([math.inf if x is None else float(x) for x in lv], dtype=torch.float64)
+
+
 def known_of(capture: Capture, options: RunOptions, samples: Samples | None = None) -> Known:
     """Return what the capture states as known for ``options.problem`` (loads files here).
 
@@ -152,6 +160,7 @@ def known_of(capture: Capture, options: RunOptions, samples: Samples | None = No
                  noise=cfg.noise, geometry_source=cfg.geometry_source,
                  image_shape=(cfg.camera.height, cfg.camera.width),
                  colour_corrected=cfg.colour is not None,
+                 clip_level=_clip_levels(capture),
                  texture_model=texture_model_from_config(cfg.raw, cfg.root, cfg.toml_path)
                  if options.problem == "aldrian-smith" else None,
                  colour_reference=colour_ref)

@@ -235,6 +235,10 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
         info["implausible_values"] = n_wild
     if integer:
         info["source"] = "16-bit integer image (code / 65535)"
+    if sat_level is not None:
+        # the clip in the radiance units of the fit: the lighting fit decides which samples
+        # sit near it on its prediction, not on their noisy value (docs/fitting.md)
+        info["clip_level"] = float(sat_level) / float(spec.exposure)
     if config.dark_floor is not None:
         info["dark_pixels"] = n_dark
     return View(index=index, spec=spec, radiance=radiance, mask=mask, variance=variance, info=info)

@@ -81,6 +81,17 @@ class Known:
     #: ``ColourReference`` (ColorChecker patches) or ``SharedAlbedoReference`` (loaded by the
     #: pipeline), else ``None``
     colour_reference: Any = None
+    #: ``(V,)`` clip level of each view in radiance units (saturation / exposure; ``inf`` for a
+    #: view without one), or ``None``: the lighting fit drops the samples its *prediction* puts
+    #: near it (:func:`brdfcap.fit.inverse_lighting.fit_lighting` ``clip``)
+    clip_level: torch.Tensor | None = None
+
+    def clip_of(self, samples) -> torch.Tensor | None:
+        """``(N,)`` clip level of each sample (by its view), or ``None``."""
+        if self.clip_level is None or getattr(samples, "view", None) is None:
+            return None
+        lv = self.clip_level.to(device=samples.view.device, dtype=torch.float64)
+        return lv[samples.view.long()]
 
     @property
     def albedo(self) -> torch.Tensor | None:
