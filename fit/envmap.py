@@ -224,14 +224,20 @@ def project_envmap(image: torch.Tensor, lmax: int, quadrature: str = "fejer",
     return out[:, 0] if squeeze else out
 
 
-def reconstruct_envmap(coeffs: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Evaluate ``Σ L_lm y_lm`` at the pixel centres: ``(K[, C]) -> (H, W[, C])`` float64."""
+def _coefficient_columns(coeffs: torch.Tensor) -> tuple[torch.Tensor, int, bool]:
+    """``(c ((lmax+1)², C) float64, lmax, squeeze)`` of ``(K[, C])`` SH coefficients."""
     squeeze = coeffs.ndim == 1
     c = (coeffs[:, None] if squeeze else coeffs).to(torch.float64)
     k = c.shape[0]
     lmax = math.isqrt(k) - 1
     if (lmax + 1) ** 2 != k:
         raise ValueError(f"{k} coefficients is not (lmax+1)**2")
+    return c, lmax, squeeze
+
+
+def reconstruct_envmap(coeffs: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Evaluate ``Σ L_lm y_lm`` at the pixel centres: ``(K[, C]) -> (H, W[, C])`` float64."""
+    c, lmax, squeeze = _coefficient_columns(coeffs)
     p = _legendre_rows(height, lmax)
     cos_m, sin_m = _trig(width, lmax)
     r2 = math.sqrt(2.0)
@@ -263,12 +269,7 @@ def evaluate_sh(coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     integrates when the lighting *is* SH (``capture.reference.LatLongProbe.from_sh``).
     ``coeffs`` ``((lmax+1)², C)`` or ``((lmax+1)²,)`` (then the result drops ``C``).
     """
-    squeeze = coeffs.ndim == 1
-    c = (coeffs[:, None] if squeeze else coeffs).to(torch.float64)
-    k = c.shape[0]
-    lmax = math.isqrt(k) - 1
-    if (lmax + 1) ** 2 != k:
-        raise ValueError(f"{k} coefficients is not (lmax+1)**2")
+    c, lmax, squeeze = _coefficient_columns(coeffs)
     c = c.to(dirs.device)
     flat = dirs.reshape(-1, 3).to(torch.float64)
     out = flat.new_empty(flat.shape[0], c.shape[1])
