@@ -41,6 +41,19 @@ def read_integer_image(path: str | Path) -> tuple[np.ndarray, int]:
 #: sigma drop one in 3.5 million honest dark pixels, and a linear value cannot be negative.
 NEGATIVE_SIGMAS = 5.0
 
+
+def negative_limit(noise) -> float:
+    """Return the value below which a pixel is negative "beyond noise" (:data:`NEGATIVE_SIGMAS`).
+
+    ``-NEGATIVE_SIGMAS`` × the read-noise floor ``sqrt(variance(0))`` of ``noise`` (a
+    :class:`~.types.NoiseModel`); 0 without a known noise model or with a non-finite floor.
+    The loader masks by it and the simulator counts the pixels it will mask.
+    """
+    if noise is None or not noise.is_known:
+        return 0.0
+    floor = float(np.sqrt(noise.variance(np.zeros(1))[0]))
+    return -NEGATIVE_SIGMAS * floor if np.isfinite(floor) else 0.0
+
 #: A float image whose maximum value is shared *exactly* by at least this many pixels and this
 #: fraction of its positive pixels is flat-topped: the signature of a clipped (saturated)
 #: image written without a ``saturation`` key. Real radiance varies from pixel to pixel; a
@@ -144,10 +157,7 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
     warn = config.warnings.append
     finite = _all_channels(np.isfinite(pixels))
     mask = finite.copy()
-    noise_floor = 0.0
-    if config.noise.is_known:
-        noise_floor = float(np.sqrt(config.noise.variance(np.zeros(1))[0]))
-    neg_limit = -NEGATIVE_SIGMAS * noise_floor if np.isfinite(noise_floor) else 0.0
+    neg_limit = negative_limit(config.noise)
     neg = _any_channel(pixels < neg_limit) & finite
     n_neg = int(neg.sum())
     mask &= ~neg

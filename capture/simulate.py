@@ -763,11 +763,9 @@ class _NegativeRadiance:
     """
 
     def __init__(self, scene: Scene):
-        from .load import NEGATIVE_SIGMAS
+        from .load import negative_limit
 
-        floor = 0.0 if scene.noise is None else math.sqrt(float(scene.noise.variance(
-            np.zeros(1))[0]))
-        self.threshold = -NEGATIVE_SIGMAS * floor
+        self.threshold = negative_limit(scene.noise)
         self.pixels = 0
         self.views: list[int] = []
         self.minimum = np.full(3, np.inf)
