@@ -156,6 +156,8 @@ def known_of(capture: Capture, options: RunOptions, samples: Samples | None = No
     return Known(source=cfg.toml_path, lighting_kind=cfg.lighting_kind,
                  material=None if cfg.material is None else cfg.material.table(),
                  lighting_sh=light,
+                 lighting_from_probe=light is not None and cfg.lighting.coefficients is None
+                 and cfg.lighting.coefficients_file is None,
                  sources=None if src is None else torch.as_tensor(src, dtype=torch.float64),
                  noise=cfg.noise, geometry_source=cfg.geometry_source,
                  image_shape=(cfg.camera.height, cfg.camera.width),

@@ -55,7 +55,7 @@ from .brdf.base import BRDFModel, orthonormal_basis
 from .rotation import zyz_angles, zyz_rotator
 from .sh import real_sh
 
-__all__ = ["ExactRows", "exact_rows", "horizon_clamped", "exact_rows_direct",
+__all__ = ["ExactRows", "LocalLighting", "exact_rows", "horizon_clamped", "exact_rows_direct",
            "exact_rows_rotated", "TABLE_ANGLES", "lobe_extent", "lobe_bandwidth", "node_counts",
            "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
            "CONVERGENCE_TOL", "CHUNK_BYTES", "rule_extent", "rule_nodes", "exitance_grid",
@@ -278,7 +278,7 @@ def rule_nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int
 
 
 def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
-               refine: float = 1.0, method: str = "auto"
+               refine: float = 1.0, method: str = "auto", shape: float | None = None
                ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Return the specular rows ``D_{p,lm}`` (module doc), direct or rotated.
 
@@ -287,17 +287,19 @@ def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, 
     :data:`ROTATE_ABOVE` × :data:`TABLE_ANGLES` samples. Arguments and returns as
     :func:`exact_rows_direct`.
     """
+    kw = {} if shape is None else {"shape": shape}
     if method not in ("auto", "direct", "rotated"):
         raise ValueError(f"unknown method {method!r}; valid: auto, direct, rotated")
     if method == "rotated" or (method == "auto"
                                and normal.shape[0] > ROTATE_ABOVE * TABLE_ANGLES):
-        return exact_rows_rotated(model, normal, reflected, lmax, refine)
-    return exact_rows_direct(model, normal, reflected, lmax, refine)
+        return exact_rows_rotated(model, normal, reflected, lmax, refine, **kw)
+    return exact_rows_direct(model, normal, reflected, lmax, refine, **kw)
 
 
 def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
                       lmax: int, refine: float = 1.0, chunk_bytes: int = CHUNK_BYTES,
-                      mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+                      mirror: bool = False, shape: float | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
     r"""Specular rows ``D_{p,lm}`` by the per-sample quadrature (module doc), no diffuse part.
 
     Parameters
@@ -318,6 +320,10 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
         :func:`exact_rows_rotated`): an isotropic transfer is then symmetric under ``y → −y``,
         so half of each ring's nodes (weights doubled) give the ``cos mφ`` rows and the
         ``sin mφ`` rows (``m < 0``) are exactly 0 — half the cost, same rows to rounding.
+    shape : float, optional
+        Evaluate the transfer at this value of the model's shape parameter (``s``, ``σ``) on
+        the rule of the model's own: a derivative in the shape by differences then sees no
+        change of nodes (a parametric fit's Jacobian). An affine model only.
 
     Returns
     -------
@@ -342,6 +348,9 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
     n_all = normal.shape[0]
     probe = model.specular_affine(normal[:1], normal[:1], wo[:1])
     affine = probe is not None
+    if shape is not None and not affine:
+        raise ValueError(f"exact_rows_direct(shape=...): {model.name}'s transfer is not affine "
+                         "in one scale")
     rows_a = normal.new_zeros((n_all, k) if affine else (n_all, model.channels, k))
     rows_q = normal.new_zeros((n_all, k)) if affine else None
     any_q = []
@@ -356,7 +365,7 @@ def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.T
             dd = d.reshape(-1, 3)
             y = real_sh(dd, lmax).reshape(p, m, k)
             if affine:
-                a, q = model.specular_affine(nn, dd, ww)
+                a, q = model.specular_affine(nn, dd, ww, shape)
                 rows_a[s:e] = torch.einsum("pm,pmk->pk", w * a.reshape(p, m), y)
                 if bool((q != 0).any()):
                     any_q.append(True)
@@ -380,9 +389,31 @@ def _sine_columns(lmax: int, device) -> torch.Tensor:
     return torch.nonzero(torch.arange((lmax + 1) ** 2) < l * (l + 1)).flatten().to(device)
 
 
+def _canonical_frames(normal: torch.Tensor, reflected: torch.Tensor, angles: int):
+    """Each sample's exitance angle and local frame, and the canonical table's samples.
+
+    Returns ``(γ (N,), γ_max, canonical n (G, 3), canonical r (G, 3), euler (3, N))``: the
+    local frame ``R_p`` has columns the tangent toward ``ωo`` (any tangent at ``γ = 0``),
+    ``n × t`` and ``n``; ``euler`` its ZYZ angles, ``R_p = Rz(a) Ry(b) Rz(c)``.
+    """
+    normal = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
+    r = reflected.to(torch.float64)
+    cg = (normal * r).sum(-1).clamp(-1.0, 1.0)
+    wo = 2.0 * cg[:, None] * normal - r
+    gam = torch.arccos(cg.clamp(0.0, 1.0))
+    gmax, _, cn, cr, _ = exitance_grid(gam, angles)
+    tang = wo - cg[:, None] * normal
+    fallback, _ = orthonormal_basis(normal)
+    tn = tang.norm(dim=-1, keepdim=True)
+    tang = torch.where(tn > 1e-9, tang / tn.clamp_min(1e-300), fallback)
+    rot = torch.stack([tang, torch.linalg.cross(normal, tang), normal], -1)  # columns
+    return gam, gmax, cn, cr, torch.stack(zyz_angles(rot))
+
+
 def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
                        lmax: int, refine: float = 1.0, angles: int = TABLE_ANGLES,
-                       chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+                       chunk: int | None = None, shape: float | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor | None]:
     r"""Return the rows of :func:`exact_rows_direct` by rotating a canonical table.
 
     An isotropic BRDF's transfer depends on the sample only through its frame and the exitance
@@ -401,28 +432,17 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     ``~Σ_l (2l+1)² + 20 K`` flops per sample. Anisotropic models are not supported (none is
     registered).
     """
-    normal = torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
-    r = reflected.to(torch.float64)
-    cg = (normal * r).sum(-1).clamp(-1.0, 1.0)
-    wo = 2.0 * cg[:, None] * normal - r
-    gam = torch.arccos(cg.clamp(0.0, 1.0))
-    gmax, _, cn, cr, _ = exitance_grid(gam, angles)
+    gam, gmax, cn, cr, euler = _canonical_frames(normal, reflected, angles)
     # (G, K) or (G, C, K); n and r in the x-z plane, an isotropic lobe symmetric about it
-    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine, mirror=True)
+    ta, tq = exact_rows_direct(model, cn, cr, lmax, refine, mirror=True, shape=shape)
     i0, wts = lagrange4(gam, gmax, angles)
-    # local frames: t along the tangential part of ωo (any tangent at γ = 0)
-    tang = wo - cg[:, None] * normal
-    fallback, _ = orthonormal_basis(normal)
-    tn = tang.norm(dim=-1, keepdim=True)
-    tang = torch.where(tn > 1e-9, tang / tn.clamp_min(1e-300), fallback)
-    rot = torch.stack([tang, torch.linalg.cross(normal, tang), normal], -1)  # columns
-    euler = torch.stack(zyz_angles(rot))  # (3, N): R = Rz(a) Ry(b) Rz(c)
-    rotator = zyz_rotator(lmax, torch.float64, normal.device)
+    nsamp = gam.shape[0]
+    rotator = zyz_rotator(lmax, torch.float64, gam.device)
     # samples in order of γ: a chunk then needs only the few table angles around its own,
     # and the interpolation is one small product (table columns × sparse weights)
     order = torch.argsort(gam)
     i0s, wts_s, euler_s = i0[order], wts[order].T.contiguous(), euler[:, order].contiguous()
-    taps = torch.arange(4, device=normal.device)
+    taps = torch.arange(4, device=gam.device)
 
     def rotate_range(tab, outs, start, stop):
         nb = tab.shape[1]
@@ -444,11 +464,11 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
 
     assert ta.shape[-1] == (lmax + 1) ** 2
     # every table (a, per channel if not affine; q) in one rotation pass: B vectors a sample
-    a = normal.new_empty((normal.shape[0],) + ta.shape[1:])
+    a = cn.new_empty((nsamp,) + ta.shape[1:])
     tables, outs = ([ta], [a]) if ta.ndim == 2 else (list(ta.unbind(1)), list(a.unbind(1)))
     q = None
     if tq is not None:
-        q = normal.new_empty((normal.shape[0], tq.shape[-1]))
+        q = cn.new_empty((nsamp, tq.shape[-1]))
         tables.append(tq)
         outs.append(q)
     if chunk is None:  # a chunk's working rows (~4 MB) stay in cache (512-1024 best at L 16)
@@ -460,10 +480,74 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        rotate_range(tab, outs, 0, normal.shape[0])
+        rotate_range(tab, outs, 0, nsamp)
     finally:
         torch.set_num_threads(threads)
     return a, q
+
+
+class LocalLighting:
+    r"""Known SH lighting turned into each sample's local frame: radiance of any transfer, fast.
+
+    With the rows of :func:`exact_rows_rotated`, ``D_{p,l·} = D^l(R_p) c_l(γ_p)``, the radiance
+    under known lighting ``L`` is ``B_{pc} = Σ_l c_l(γ_p) · (D^l(R_p)ᵀ L_{l,c})`` (``D``
+    orthogonal): the lighting in the sample's frame ``R_p`` does not depend on the BRDF. It is
+    computed once (:func:`~brdfcap.fit.rotation.rotate_sh_zyz` by ``R_pᵀ``; only its
+    ``m ≥ 0`` coefficients are kept — the canonical table's ``sin mφ`` rows are exactly 0), so a
+    new transfer (a parametric fit's next lobe shape) costs one canonical table
+    (:func:`exact_rows_direct` on ``angles`` samples) and a 4-tap interpolation per sample,
+    not a rotation of ``(L+1)²`` rows per sample. Equal to ``exact_rows(...) @ L`` to rounding
+    (``tests/fit/test_exact_design.py``). Memory ``N × C × (L+1)(L+2)/2`` float64.
+    """
+
+    def __init__(self, normal: torch.Tensor, reflected: torch.Tensor, light_sh: torch.Tensor,
+                 angles: int = TABLE_ANGLES, chunk: int = 4096):
+        from .rotation import rotate_sh_zyz
+
+        light = light_sh.to(device=normal.device, dtype=torch.float64)
+        self.lmax = int(math.isqrt(light.shape[0])) - 1
+        if light.ndim != 2 or (self.lmax + 1) ** 2 != light.shape[0]:
+            raise ValueError(f"light_sh must be ((L+1)², C); got {tuple(light.shape)}")
+        self.angles = angles
+        self.gam, self.gmax, self.cn, self.cr, euler = _canonical_frames(normal, reflected,
+                                                                         angles)
+        self.i0, self.wts = lagrange4(self.gam, self.gmax, angles)
+        l_idx = [l * (l + 1) + m for l in range(self.lmax + 1) for m in range(l + 1)]
+        self.cos_cols = torch.tensor(l_idx, device=normal.device)
+        n, c = self.gam.shape[0], light.shape[1]
+        self.local = light.new_empty((n, c, len(l_idx)))
+        for s in range(0, n, chunk):
+            e = min(s + chunk, n)
+            rot = rotate_sh_zyz(light.T[None].expand(e - s, c, light.shape[0]).contiguous(),
+                                -euler[2, s:e], -euler[1, s:e], -euler[0, s:e])
+            self.local[s:e] = rot[..., self.cos_cols]
+
+    def radiance(self, model: BRDFModel, refine: float = 1.0, shape: float | None = None,
+                 chunk: int = 8192) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Return ``(a, q)`` ``(N, C)``: the radiance of the specular rows under the lighting.
+
+        ``a``, ``q`` as :func:`exact_rows_direct` (same ``refine``, ``shape``); ``q`` is ``None``
+        when the transfer has no scale-free part.
+        """
+        ta, tq = exact_rows_direct(model, self.cn, self.cr, self.lmax, refine, mirror=True,
+                                   shape=shape)
+        if ta.ndim != 2:
+            raise ValueError(f"LocalLighting: {model.name}'s transfer is not affine in one scale")
+        taps = torch.arange(4, device=self.gam.device)
+        out = []
+        for tab in (ta, tq):
+            if tab is None:
+                out.append(None)
+                continue
+            tab = tab[:, self.cos_cols]
+            res = self.local.new_empty(self.local.shape[:2])
+            for s in range(0, res.shape[0], chunk):
+                e = min(s + chunk, res.shape[0])
+                rows = torch.einsum("nt,ntk->nk", self.wts[s:e],
+                                    tab[self.i0[s:e, None] + taps])
+                res[s:e] = torch.einsum("nk,nck->nc", rows, self.local[s:e])
+            out.append(res)
+        return out[0], out[1]
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:

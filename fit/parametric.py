@@ -30,10 +30,13 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf import BRDFModel, brdf_model_names, get_brdf_model, make_brdf
-from .brdf_models import BRDFSpec, directional_albedo, reciprocity_error
+from .brdf_models import BRDFSpec, diffuse_filter, directional_albedo, reciprocity_error
+from .exact_design import LocalLighting
+from .sh import band_of_index, real_sh
 from .solve import noise_weights
 
-__all__ = ["ParametricFit", "fit_brdf_parametric", "parametric_models", "PARAMETRIC_MODELS",
+__all__ = ["ParametricFit", "fit_brdf_parametric", "fit_brdf_parametric_sh", "parametric_models",
+           "PARAMETRIC_MODELS", "COARSE_SAMPLES", "COARSE_ANGLES", "COARSE_GRID", "SHAPE_STEP",
            "SHAPE_BOUNDS"]
 
 
@@ -84,6 +87,11 @@ class ParametricFit:
     n_samples: int
     noise_source: str
     checks: dict = field(default_factory=dict)
+    #: ``(N, C)`` the fitted model's radiance at the samples the fit received (after dropping
+    #: non-finite ones)
+    prediction: torch.Tensor | None = None
+    #: what else a forward model states (``fit_brdf_parametric_sh``: the lighting bandwidth)
+    extra: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -91,7 +99,7 @@ class ParametricFit:
                 "parameters": {k: v.tolist() for k, v in self.values.items()},
                 "stderr": {k: v.tolist() for k, v in self.stderr.items()},
                 "chi2_reduced": self.chi2_reduced, "n_samples": self.n_samples,
-                "noise_source": self.noise_source, "checks": self.checks}
+                "noise_source": self.noise_source, "checks": self.checks, **self.extra}
 
 
 def _basis(model: BRDFModel, theta: torch.Tensor, n, wo, wi, e):
@@ -148,11 +156,7 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
     -------
     ParametricFit
     """
-    valid = parametric_models()
-    if model not in valid:
-        raise ValueError(f"unknown parametric model {model!r}; valid: {', '.join(valid)}")
-    proto = make_brdf(model, validate=False, kd=torch.zeros(radiance.shape[-1]))
-    shape_name, scale_name = proto.shape_parameter, proto.scale_parameter
+    proto = _prototype(model, radiance.shape[-1])
     f64 = torch.float64
     n, o, i = (torch.nn.functional.normalize(t.to(f64), dim=-1) for t in (normal, wo, wi))
     e = light_radiance.to(f64)
@@ -166,26 +170,62 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
     w, src = noise_weights(b, var)
     lit = ((n * i).sum(-1) > 0) & ((n * o).sum(-1) > 0)
     w = w * lit[:, None]
+
+    def basis(theta):
+        return _basis(proto, theta, n, o, i, e)
+
+    def shape_derivative(theta, x):
+        def pred_of(t):
+            cc, oo = _basis(proto, t, n, o, i, e)
+            return torch.einsum("ncj,jc->nc", cc, x) + oo
+        return torch.func.jvp(pred_of, (theta,), (torch.ones_like(theta),))[1]
+
+    return _variable_projection(model, proto, basis, shape_derivative, b, w, var is not None,
+                                src, bounds, checks)
+
+
+def _prototype(model: str, channels: int) -> BRDFModel:
+    valid = parametric_models()
+    if model not in valid:
+        raise ValueError(f"unknown parametric model {model!r}; valid: {', '.join(valid)}")
+    return make_brdf(model, validate=False, kd=torch.zeros(channels))
+
+
+def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, b, w,
+                         noise_known: bool, src: str, bounds, checks: bool,
+                         coarse=None, xatol: float = 1e-10, grid_points: int = 48
+                         ) -> ParametricFit:
+    """Fit scales and shape by variable projection (module doc) for any forward model.
+
+    ``basis(θ) -> (cols (N, C, J), offset (N, C))``: the columns of the linear scales (``kd``
+    then the specular scale) and the scale-free part at shape ``θ``;
+    ``shape_derivative(θ, x) -> (N, C)``: ``∂ prediction / ∂θ`` at scales ``x`` ``(J, C)``.
+    ``coarse``: ``(basis, b, w)`` of a subset used for the grid that brackets the minimum
+    (the bounded Brent search then runs on all samples). ``w`` ``(N, C)``: weights (0 = unused).
+    """
     nuse = int((w > 0).any(-1).sum())
     if nuse < 3:
         raise FitError(f"only {nuse} lit samples: too few to fit a {model} BRDF")
+    f64 = torch.float64
     nch = b.shape[1]
-
+    shape_name, scale_name = proto.shape_parameter, proto.scale_parameter
     if shape_name is None:
         theta = torch.tensor(0.0, dtype=f64)
     else:
         lo, hi = bounds or proto.shape_bounds
-        grid = torch.linspace(math.log(lo), math.log(hi), 48, dtype=f64)
-        cost = [(_scales(*_basis(proto, math.exp(float(t)), n, o, i, e), b, w)[1]) for t in grid]
+        grid = torch.linspace(math.log(lo), math.log(hi), grid_points, dtype=f64)
+        gbasis, gb, gw = coarse or (basis, b, w)
+        cost = [(_scales(*gbasis(math.exp(float(t))), gb, gw)[1]) for t in grid]
         j = int(torch.tensor(cost).argmin())
-        a_, b_ = float(grid[max(j - 1, 0)]), float(grid[min(j + 1, len(grid) - 1)])
+        reach = 1 if coarse is None else 2  # a subset's minimum may sit one cell off
+        a_, b_ = float(grid[max(j - reach, 0)]), float(grid[min(j + reach, len(grid) - 1)])
         from scipy.optimize import minimize_scalar
 
         res = minimize_scalar(
-            lambda t: _scales(*_basis(proto, math.exp(t), n, o, i, e), b, w)[1],
-            bounds=(a_, b_), method="bounded", options={"xatol": 1e-10})
+            lambda t: _scales(*basis(math.exp(t)), b, w)[1],
+            bounds=(a_, b_), method="bounded", options={"xatol": xatol})
         theta = torch.tensor(math.exp(res.x), dtype=f64)
-    cols, off = _basis(proto, theta, n, o, i, e)
+    cols, off = basis(theta)
     x, rss = _scales(cols, off, b, w)  # x (J, C)
     nlin = cols.shape[-1]
     # Jacobian of the prediction w.r.t. (scales per channel, theta)
@@ -193,20 +233,16 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
     if shape_name is not None:
         names += [f"{scale_name}[{c}]" for c in range(nch)] + [shape_name]
     p = len(names)
-    jac = torch.zeros(b.shape[0], nch, p, dtype=f64)
+    jac = torch.zeros(b.shape[0], nch, p, dtype=f64, device=b.device)
     for jcol in range(nlin):
         for c in range(nch):
             jac[:, c, jcol * nch + c] = cols[:, c, jcol]
     if shape_name is not None:
-        def pred_of(t):
-            cc, oo = _basis(proto, t, n, o, i, e)
-            return torch.einsum("ncj,jc->nc", cc, x) + oo
-        _, dpred = torch.func.jvp(pred_of, (theta,), (torch.ones_like(theta),))
-        jac[:, :, -1] = dpred
+        jac[:, :, -1] = shape_derivative(theta, x)
     h = torch.einsum("ncp,nc,ncq->pq", jac, w, jac)
     nobs = int((w > 0).sum())
     chi2 = rss / max(nobs - p, 1)
-    sig2 = max(chi2, 1.0) if var is not None else chi2
+    sig2 = max(chi2, 1.0) if noise_known else chi2
     ev, u = torch.linalg.eigh(h)
     keep = ev > 1e-12 * ev.max().clamp_min(1e-300)
     cov = (u[:, keep] / ev[keep]) @ u[:, keep].T * sig2
@@ -234,6 +270,125 @@ def fit_brdf_parametric(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor
                "max_directional_albedo": alb.tolist(),
                "energy_conserving": bool((alb <= 1.0 + 1e-3).all()),
                "albedo_in_range": bool(((x[0] >= 0) & (x[0] <= 1)).all())}
+    pred = torch.einsum("ncj,jc->nc", cols, x) + off
     return ParametricFit(model=model, spec=spec, values=values, stderr=stderr, names=names,
                          covariance=cov, chi2_reduced=chi2, n_samples=nuse, noise_source=src,
-                         checks=chk)
+                         checks=chk, prediction=pred)
+
+
+#: The grid that brackets the shape uses at most this many samples (evenly strided); the bounded
+#: Brent search then uses them all.
+COARSE_SAMPLES = 8000
+#: Canonical exitance angles of the bracketing grid's table (the final search uses
+#: :data:`~brdfcap.fit.exact_design.TABLE_ANGLES`).
+COARSE_ANGLES = 49
+#: Points of the bracketing grid in ``log θ`` under SH lighting (each costs one canonical table).
+COARSE_GRID = 24
+#: Relative step in the shape of the central difference that gives the Jacobian's shape column
+#: under SH lighting (the quadrature's nodes held fixed: the derivative of one smooth rule).
+SHAPE_STEP = 1e-4
+
+
+def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.Tensor,
+                           light_sh: torch.Tensor, variance: torch.Tensor | None = None,
+                           model: str = "phong", bounds: tuple[float, float] | None = None,
+                           checks: bool = True) -> ParametricFit:
+    r"""Fit a parametric BRDF to samples under known SH environment lighting.
+
+    The forward model is the reflection equation itself (R&H 2001 eq. 1), not its
+    reflection-space approximation: with the known lighting ``L_lm`` (bands ``≤ K``),
+
+    .. math:: B_{pc} = \frac{k_{d,c}}{\pi} \sum_{lm} \hat A_l L_{lm,c} Y_{lm}(n_p)
+              + k_{s,c} \sum_{lm} D_{p,lm}(\theta) L_{lm,c} + \sum_{lm} Q_{p,lm}(\theta) L_{lm,c}
+
+    (``Â_l`` the clamped cosine's filter, R&H 2001 eq. 8; ``D``/``Q`` the specular rows of
+    :func:`brdfcap.fit.exact_design.exact_rows` — the model's point evaluation with its horizon
+    clamp, Fresnel and shadowing integrated against ``Y_lm`` — split as ``scale · a + q``, e.g.
+    Schlick's ``F = f0 (1 − c⁵) + c⁵``). For a fixed shape ``θ`` (Phong ``s``, microfacet
+    ``σ``) it is linear in ``kd`` and the specular scale, so the fit is the same variable
+    projection as :func:`fit_brdf_parametric` (module doc): a :data:`COARSE_GRID`-point grid
+    in ``log θ`` on at most :data:`COARSE_SAMPLES` samples (a table of :data:`COARSE_ANGLES`
+    exitance angles) brackets the minimum, a bounded Brent search on all samples finds it.
+    Each shape costs one canonical table: the lighting is turned into every sample's frame
+    once (:class:`~brdfcap.fit.exact_design.LocalLighting`). The Jacobian's shape column is a
+    central difference of relative step :data:`SHAPE_STEP` on the rule of ``θ`` (nodes held
+    fixed).
+
+    Parameters
+    ----------
+    normal, wo : torch.Tensor
+        ``(N, 3)`` unit normals and directions to the camera (world frame).
+    radiance : torch.Tensor
+        ``(N, C)`` observed linear radiance; non-finite samples are given no weight.
+    light_sh : torch.Tensor
+        ``((K+1)², C)`` known lighting (R&H 2001 real basis, ``docs/conventions.md``); the
+        model sees no lighting above ``K`` (``extra["lighting_lmax"]``).
+    variance : torch.Tensor, optional
+        ``(N, C)`` noise variance (``None``: uniform weights, σ² from the residual).
+    model : str
+        One of :func:`parametric_models`.
+
+    Returns
+    -------
+    ParametricFit
+        ``prediction`` for every sample; ``extra``: ``lighting_lmax``, ``forward_model``.
+    """
+    proto = _prototype(model, radiance.shape[-1])
+    f64 = torch.float64
+    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
+    o = torch.nn.functional.normalize(wo.to(f64), dim=-1)
+    L = light_sh.to(device=n.device, dtype=f64)
+    k = int(math.isqrt(L.shape[0])) - 1
+    if (k + 1) ** 2 != L.shape[0] or L.ndim != 2 or L.shape[1] != radiance.shape[-1]:
+        raise ValueError(f"light_sh must be ((K+1)², {radiance.shape[-1]}); got "
+                         f"{tuple(L.shape)}")
+    b = radiance.to(f64)
+    good = torch.isfinite(b).all(-1) & torch.isfinite(n).all(-1) & torch.isfinite(o).all(-1)
+    var = None if variance is None else torch.where(good[:, None], variance.to(f64),
+                                                    torch.ones_like(b))
+    b = torch.where(good[:, None], b, torch.zeros_like(b))
+    n = torch.where(good[:, None], n, torch.tensor([0.0, 0.0, 1.0], dtype=f64, device=n.device))
+    o = torch.where(good[:, None], o, n)
+    w, src = noise_weights(b, var)
+    w = w * (good & ((n * o).sum(-1) > 0))[:, None]
+    r = 2.0 * (n * o).sum(-1, keepdim=True) * n - o
+    fd = diffuse_filter(k).to(n.device)[band_of_index(k).to(n.device)]
+    diffuse = real_sh(n, k) @ (fd[:, None] * L)  # (N, C): radiance per unit kd
+
+    def basis_of(lighting: LocalLighting, dd_):
+        def basis(theta, rule_at=None):
+            if proto.shape_parameter is None:
+                return dd_[..., None], torch.zeros_like(dd_)
+            at = float(theta if rule_at is None else rule_at)
+            m = make_brdf(model, validate=False, kd=torch.zeros(b.shape[1]),
+                          **{proto.shape_parameter: at})
+            a, q = lighting.radiance(m, shape=None if rule_at is None else float(theta))
+            return torch.stack([dd_, a], -1), (torch.zeros_like(a) if q is None else q)
+        return basis
+
+    used = torch.nonzero((w > 0).any(-1)).flatten()
+    if used.numel() < 3:
+        raise FitError(f"only {used.numel()} usable samples: too few to fit a {model} BRDF")
+    basis = basis_of(LocalLighting(n, r, L), diffuse)
+
+    def shape_derivative(theta, x):
+        t = float(theta)
+        h = SHAPE_STEP * t
+        up, dn = basis(t + h, rule_at=t), basis(t - h, rule_at=t)
+        pu = torch.einsum("ncj,jc->nc", up[0], x) + up[1]
+        pd = torch.einsum("ncj,jc->nc", dn[0], x) + dn[1]
+        return (pu - pd) / (2.0 * h)
+
+    coarse = None
+    if proto.shape_parameter is not None:
+        idx = used[torch.linspace(0, used.numel() - 1, min(COARSE_SAMPLES, used.numel()),
+                                  device=used.device).round().long()]
+        coarse = (basis_of(LocalLighting(n[idx], r[idx], L, angles=COARSE_ANGLES), diffuse[idx]),
+                  b[idx], w[idx])
+    fit = _variable_projection(model, proto, basis, shape_derivative, b, w, var is not None,
+                               src, bounds, checks, coarse=coarse, xatol=1e-7,
+                               grid_points=COARSE_GRID)
+    fit.extra = {"lighting_lmax": k,
+                 "forward_model": "reflection equation by quadrature of the model "
+                                  "(fit.exact_design), known SH lighting to l = " + str(k)}
+    return fit

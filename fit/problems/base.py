@@ -85,6 +85,9 @@ class Known:
     #: view without one), or ``None``: the lighting fit drops the samples its *prediction* puts
     #: near it (:func:`brdfcap.fit.inverse_lighting.fit_lighting` ``clip``)
     clip_level: torch.Tensor | None = None
+    #: :attr:`lighting_sh` is a light probe's SH projection (truncated at its last band), not
+    #: coefficients a capture states as the whole lighting
+    lighting_from_probe: bool = False
 
     def clip_of(self, samples) -> torch.Tensor | None:
         """``(N,)`` clip level of each sample (by its view), or ``None``."""

@@ -13,9 +13,10 @@ import torch
 
 from brdfcap.core.errors import FitError
 
+from ..brdf import as_brdf_model
 from ..brdf_models import diffuse_filter, render_directional
 from ..inverse_brdf import fit_brdf_sh
-from ..parametric import fit_brdf_parametric
+from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric_models
 from ..records import conditioning_json
 from ..result import Estimate, FitResult
 from ..sh import band_of_index, real_sh
@@ -50,13 +51,7 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
     summ = [f"Problem 2 (inverse BRDF, known distant lights): {model} fit "
             + ", ".join(f"{k} = {fmt(v)} ± {fmt(f.stderr[k])}"
                         for k, v in f.values.items()) + "."]
-    est = []
-    for k, v in f.values.items():
-        idx = [i for i, n in enumerate(f.names) if n.split("[")[0] == k]
-        cov = f.covariance[idx][:, idx] if idx else None
-        est.append(Estimate(k, v, f.stderr[k], "scalar" if v.ndim == 0 else "channel",
-                            covariance=cov))
-    return FitResult("brdf", est, pred, rec, summary=summ)
+    return FitResult("brdf", _parametric_estimates(f), pred, rec, summary=summ)
 
 
 def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
@@ -73,9 +68,10 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     if fit.kd is not None:
         pred = pred + (real_sh(samples.normal, lw) @ (diffuse_filter(lw)[band][:, None] * lp)
                        ) * fit.kd
+    sh_json = fit.to_json()
     rec = {"brdf": {"model": "sh-radial", "parameters": {"kd": None if fit.kd is None
                                                          else fit.kd.tolist()},
-                    "sh": fit.to_json(), "source": "fitted (known SH lighting)"},
+                    "sh": sh_json, "source": "fitted (known SH lighting)"},
            "conditioning": conditioning_json(None, fit)}
     summ = [f"Problem 2 (inverse BRDF, known SH lighting): radial filter to l = {fit.lmax}; "
             f"first ill-conditioned band {fit.ill_conditioned_from_l} measured, "
@@ -84,7 +80,63 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                     determined=fit.determined, note="A_l = Lambda_l rho_l (R&H 2001 eq. 12)")]
     if fit.kd is not None:
         est.append(Estimate("kd", fit.kd, fit.kd_stderr, "channel"))
-    return FitResult("brdf", est, pred, rec, summary=summ, bands={"brdf": fit.bands})
+    model = opts.brdf or (known.material or {}).get("model")
+    if model is None or model == "sh-radial":
+        return FitResult("brdf", est, pred, rec, summary=summ, bands={"brdf": fit.bands})
+    # a parametric model named (--brdf or [material].model): fitted on the exact reflection
+    # equation under the known lighting; the radial filter above stays as the measurement
+    # that assumes no model (issue 12: "always show the measured rho_l")
+    if model not in parametric_models():
+        raise FitError(f"--brdf {model}: under environment lighting problem brdf fits a "
+                       f"parametric model ({', '.join(parametric_models())}) or, with no "
+                       "model named, the SH-domain filter alone", known.source)
+    par = fit_brdf_parametric_sh(samples.normal, samples.wo, samples.radiance, light,
+                                 samples.variance, model=model)
+    warns = _lighting_band_warning(par, known)
+    rec = {"brdf": {"model": model, "parameters": par.spec.parameters(),
+                    "stderr": {k: v.tolist() for k, v in par.stderr.items()},
+                    "chi2_reduced": par.chi2_reduced, "checks": par.checks,
+                    "source": "fitted (known SH lighting, exact reflection equation)",
+                    "parametric": par.to_json(), "sh": sh_json},
+           "conditioning": rec["conditioning"]}
+    summ = [f"Problem 2 (inverse BRDF, known SH lighting to l = {par.extra['lighting_lmax']}): "
+            f"{model} fit " + ", ".join(f"{k} = {fmt(v)} ± {fmt(par.stderr[k])}"
+                                        for k, v in par.values.items())
+            + " (exact reflection equation)."] + \
+        [s.replace("Problem 2 (inverse BRDF, known SH lighting): ", "Measured, no model: ")
+         for s in summ]
+    est = _parametric_estimates(par) + [est[0]]
+    return FitResult("brdf", est, par.prediction, rec, summary=summ, warnings=warns,
+                     bands={"brdf": fit.bands})
+
+
+def _parametric_estimates(f) -> list[Estimate]:
+    """One :class:`Estimate` per fitted parameter, with its block of the joint covariance."""
+    est = []
+    for k, v in f.values.items():
+        idx = [i for i, n in enumerate(f.names) if n.split("[")[0] == k]
+        cov = f.covariance[idx][:, idx] if idx else None
+        est.append(Estimate(k, v, f.stderr[k], "scalar" if v.ndim == 0 else "channel",
+                            covariance=cov))
+    return est
+
+
+#: A probe's SH projection is said to be too short when the fitted lobe's filter is still above
+#: this fraction of its DC at the first band the projection lacks (R&H 2001 eqs. 19-20).
+LOBE_EPS = 1e-2
+
+
+def _lighting_band_warning(par, known: Known) -> list[str]:
+    """One line when the known lighting is a probe cut below the bands the fitted lobe passes."""
+    k = par.extra["lighting_lmax"]
+    pred = as_brdf_model(par.spec).predicted_lstar(LOBE_EPS)
+    ls = (pred or {}).get("lstar") if isinstance(pred, dict) else pred
+    if not known.lighting_from_probe or ls is None or not math.isfinite(ls) or ls <= k:
+        return []
+    return [f"{known.source}: the known lighting is the probe projected to l = {k}, but the "
+            f"fitted {par.model} lobe passes bands to l* = {ls:.0f} (filter > {LOBE_EPS:g} of "
+            f"its DC; R&H 2001 eqs. 19-20): the fit misses the lighting above l = {k}; rerun "
+            f"with --brdf-lmax {math.ceil(ls)} (or set lighting.probe_lmax)"]
 
 
 def problem_brdf(samples, known: Known, opts: FitOptions) -> FitResult:
