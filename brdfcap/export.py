@@ -144,8 +144,8 @@ def material_from_results(results: dict, path: str | Path | None = None) -> BRDF
     if model == "phong":
         return BRDFSpec("phong", kd=_rgb(par.get("kd"), "kd", path),
                         ks=_rgb(par.get("ks"), "ks", path), s=float(par["s"]))
-    if model == "microfacet":
-        return BRDFSpec("microfacet", kd=_rgb(par.get("kd"), "kd", path),
+    if model in ("microfacet", "beckmann", "ggx"):
+        return BRDFSpec(model, kd=_rgb(par.get("kd"), "kd", path),
                         sigma=float(par["sigma"]), f0=_rgb(par.get("f0"), "f0", path))
     if model == "mirror":
         return BRDFSpec("mirror", kd=_rgb(par.get("kd"), "kd", path),
@@ -164,6 +164,8 @@ class EquivalentMicrofacet:
     alpha: float | None
     source: str
     notes: list[str] = field(default_factory=list)
+    #: microfacet distribution of the lobe (Mitsuba's ``distribution``)
+    distribution: str = "beckmann"
 
     @property
     def metallic(self) -> bool:
@@ -176,9 +178,13 @@ def equivalent_microfacet(spec: BRDFSpec) -> EquivalentMicrofacet:
     kd = tuple(float(v) for v in spec.kd)
     if spec.model == "lambertian":
         return EquivalentMicrofacet(kd, None, None, "lambertian")
-    if spec.model == "microfacet":
+    if spec.model in ("microfacet", "beckmann"):
         return EquivalentMicrofacet(kd, tuple(float(v) for v in spec.f0), float(spec.sigma),
                                     "microfacet: alpha = sigma (Walter et al. 2007 eq. 25)")
+    if spec.model == "ggx":
+        return EquivalentMicrofacet(kd, tuple(float(v) for v in spec.f0), float(spec.sigma),
+                                    "ggx: alpha = sigma (Walter et al. 2007 eq. 33)",
+                                    distribution="ggx")
     if spec.model == "phong":
         s = max(float(spec.s), 1e-6)
         return EquivalentMicrofacet(
@@ -218,7 +224,7 @@ def mitsuba_bsdf_dict(spec: BRDFSpec) -> tuple[dict, list[str]]:
         notes.append("roughplastic attenuates the diffuse term by the Fresnel transmittance "
                      "(about (1 - F0)^2)")
     if rough:
-        d["distribution"] = "beckmann"
+        d["distribution"] = eq.distribution
         d["alpha"] = float(eq.alpha)
     return d, notes
 

@@ -52,10 +52,12 @@ import torch
 from scipy.special import roots_legendre
 
 from .brdf.base import BRDFModel, orthonormal_basis
+from .filters import lambertian_filter
 from .rotation import zyz_angles, zyz_rotator
 from .sh import real_sh
 
-__all__ = ["ExactRows", "LocalLighting", "exact_rows", "horizon_clamped", "exact_rows_direct",
+__all__ = ["ExactRows", "LocalLighting", "kernel_power", "exact_rows", "horizon_clamped",
+           "exact_rows_direct",
            "exact_rows_rotated", "TABLE_ANGLES", "lobe_extent", "lobe_bandwidth", "node_counts",
            "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
            "CONVERGENCE_TOL", "CHUNK_BYTES", "rule_extent", "rule_nodes", "exitance_grid",
@@ -486,6 +488,49 @@ def exact_rows_rotated(model: BRDFModel, normal: torch.Tensor, reflected: torch.
     return a, q
 
 
+def kernel_power(spec, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
+                 angles: int = TABLE_ANGLES) -> torch.Tensor:
+    r"""``∫ k_{c,p}(ω)² dω`` of each sample's whole transfer kernel, ``(N, C)`` (Parseval side).
+
+    ``k_{c,p}(ω) = kd_c max(n·ω, 0)/π + f_c(n, ω, ωo) max(n·ω, 0)`` is what sample ``p`` of
+    channel ``c`` integrates against the lighting (R&H 2001 eq. 1); its SH coefficients are the
+    row of the exact design, so ``∫ k² − Σ_{l≤L} ‖D_{p,l}‖²`` is the kernel's power above the
+    internal band (:func:`truncation_power`). The diffuse square is ``2 kd²/(3π)`` exactly; the
+    specular square and the cross term by the exact design's own rule
+    (:mod:`brdfcap.fit.exact_design`, nodes for twice the lobe's bandwidth: ``k²`` carries it)
+    on a canonical sample per exitance angle ``γ`` (``n = z``; an isotropic kernel's ``∫ k²``
+    depends on ``γ`` alone), ``angles`` uniform ``γ`` interpolated per sample by 4-point
+    Lagrange, as the rotated rows are.
+    """
+    model = spec.brdf
+    dt = torch.float64
+    n = normal.to(dt)
+    cg = (n * reflected.to(dt)).sum(-1).clamp(0.0, 1.0)
+    gam = torch.arccos(cg)
+    gmax, _, cn, cr, cwo = exitance_grid(gam, angles)
+    th, clip = rule_extent(model)
+    lb = lobe_bandwidth(model)
+    nt, nphi = node_counts(max(lmax, lb), lb, th)
+    kd = spec.kd.to(dtype=dt, device=n.device)
+    table = (2.0 * kd ** 2 / (3.0 * math.pi)).expand(angles, kd.numel()).clone()
+    step = max(1, (1 << 22) // (2 * nt * nphi))
+    for s in range(0, angles, step):
+        e = min(s + step, angles)
+        d, w = rule_nodes(cn[s:e], cr[s:e], th, nt, nphi, clip)
+        p, m = d.shape[:2]
+        f = model.eval_specular_cos(cn[s:e, None].expand(p, m, 3).reshape(-1, 3),
+                                    d.reshape(-1, 3),
+                                    cwo[s:e, None].expand(p, m, 3).reshape(-1, 3))
+        f = f.reshape(p, m, -1).to(dt)
+        cos = d[..., 2].clamp_min(0.0)
+        table[s:e] += torch.einsum("pm,pmc->pc", w, f * f) \
+            + 2.0 * kd / math.pi * torch.einsum("pm,pmc->pc", w * cos, f)
+    if angles < 4:
+        return table[torch.zeros_like(gam, dtype=torch.long)]
+    i0, wts = lagrange4(gam, gmax, angles)
+    return (table[i0[:, None] + torch.arange(4, device=i0.device)] * wts[..., None]).sum(1)
+
+
 class LocalLighting:
     r"""Known SH lighting turned into each sample's local frame: radiance of any transfer, fast.
 
@@ -548,6 +593,34 @@ class LocalLighting:
                 res[s:e] = torch.einsum("nk,nck->nc", rows, self.local[s:e])
             out.append(res)
         return out[0], out[1]
+
+
+    def power_within(self, model: BRDFModel, kd: torch.Tensor,
+                     refine: float = 1.0) -> torch.Tensor:
+        r"""Return ``Σ_{l≤L} ‖D_{p,c,l}‖²`` ``(N, C)``: each sample's whole kernel within the bands.
+
+        The kernel ``kd_c max(n·ω, 0)/π + f_c(n, ω, ωo) max(n·ω, 0)`` (its scale included) has
+        the rows ``kd_c Â_l/π Y_lm(n) + D_{p,c,lm}``; a band's norm does not change under
+        rotation, so it is read off the canonical table (``n = z``) and interpolated in ``γ``.
+        With :func:`kernel_power` (``∫ k²``, Parseval) the difference is the kernel's power
+        above ``L``: what a lighting known only to ``L`` leaves out
+        (:func:`brdfcap.fit.parametric.fit_brdf_parametric_sh`).
+        """
+        ta, tq = exact_rows_direct(model, self.cn, self.cr, self.lmax, refine, mirror=True)
+        if ta.ndim != 2:
+            raise ValueError(f"LocalLighting: {model.name}'s transfer is not affine in one scale")
+        k = self.lmax
+        z = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64, device=ta.device)
+        band = torch.repeat_interleave(torch.arange(k + 1), 2 * torch.arange(k + 1) + 1)
+        d = (lambertian_filter(k).to(ta.device)[band.to(ta.device)] / math.pi) * real_sh(z, k)[0]
+        kd = torch.as_tensor(kd, dtype=torch.float64, device=ta.device).reshape(-1)
+        scale = model.specular_scale.to(dtype=torch.float64, device=ta.device).reshape(-1)
+        rows = kd[None, :, None] * d[None, None, :] + scale[None, :, None] * ta[:, None, :]
+        if tq is not None:
+            rows = rows + tq[:, None, :]
+        table = (rows ** 2).sum(-1)  # (G, C)
+        taps = torch.arange(4, device=ta.device)
+        return (table[self.i0[:, None] + taps] * self.wts[..., None]).sum(1)
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:

@@ -41,15 +41,9 @@ from .conditioning import (
 )
 from .exact_design import (
     DESIGNS,
-    TABLE_ANGLES,
     ExactRows,
     exact_design_applies,
-    exitance_grid,
-    lagrange4,
-    lobe_bandwidth,
-    node_counts,
-    rule_extent,
-    rule_nodes,
+    kernel_power,  # noqa: F401  (re-exported: listed in __all__)
 )
 from .lighting import SHFit
 from .memory import available_bytes, check_memory
@@ -540,49 +534,6 @@ def _symmetric_tail(spec: BRDFSpec, design: str, top: int = 400) -> torch.Tensor
     p = (2 * l + 1) / (4 * math.pi) * f ** 2
     tail = p.flip(0).cumsum(0).flip(0) - p
     return tail.clamp_min(1e-300 * float(p.max().clamp_min(1e-300)))
-
-
-def kernel_power(spec: BRDFSpec, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
-                 angles: int = TABLE_ANGLES) -> torch.Tensor:
-    r"""``∫ k_{c,p}(ω)² dω`` of each sample's whole transfer kernel, ``(N, C)`` (Parseval side).
-
-    ``k_{c,p}(ω) = kd_c max(n·ω, 0)/π + f_c(n, ω, ωo) max(n·ω, 0)`` is what sample ``p`` of
-    channel ``c`` integrates against the lighting (R&H 2001 eq. 1); its SH coefficients are the
-    row of the exact design, so ``∫ k² − Σ_{l≤L} ‖D_{p,l}‖²`` is the kernel's power above the
-    internal band (:func:`truncation_power`). The diffuse square is ``2 kd²/(3π)`` exactly; the
-    specular square and the cross term by the exact design's own rule
-    (:mod:`brdfcap.fit.exact_design`, nodes for twice the lobe's bandwidth: ``k²`` carries it)
-    on a canonical sample per exitance angle ``γ`` (``n = z``; an isotropic kernel's ``∫ k²``
-    depends on ``γ`` alone), ``angles`` uniform ``γ`` interpolated per sample by 4-point
-    Lagrange, as the rotated rows are.
-    """
-    model = spec.brdf
-    dt = torch.float64
-    n = normal.to(dt)
-    cg = (n * reflected.to(dt)).sum(-1).clamp(0.0, 1.0)
-    gam = torch.arccos(cg)
-    gmax, _, cn, cr, cwo = exitance_grid(gam, angles)
-    th, clip = rule_extent(model)
-    lb = lobe_bandwidth(model)
-    nt, nphi = node_counts(max(lmax, lb), lb, th)
-    kd = spec.kd.to(dtype=dt, device=n.device)
-    table = (2.0 * kd ** 2 / (3.0 * math.pi)).expand(angles, kd.numel()).clone()
-    step = max(1, (1 << 22) // (2 * nt * nphi))
-    for s in range(0, angles, step):
-        e = min(s + step, angles)
-        d, w = rule_nodes(cn[s:e], cr[s:e], th, nt, nphi, clip)
-        p, m = d.shape[:2]
-        f = model.eval_specular_cos(cn[s:e, None].expand(p, m, 3).reshape(-1, 3),
-                                    d.reshape(-1, 3),
-                                    cwo[s:e, None].expand(p, m, 3).reshape(-1, 3))
-        f = f.reshape(p, m, -1).to(dt)
-        cos = d[..., 2].clamp_min(0.0)
-        table[s:e] += torch.einsum("pm,pmc->pc", w, f * f) \
-            + 2.0 * kd / math.pi * torch.einsum("pm,pmc->pc", w * cos, f)
-    if angles < 4:
-        return table[torch.zeros_like(gam, dtype=torch.long)]
-    i0, wts = lagrange4(gam, gmax, angles)
-    return (table[i0[:, None] + torch.arange(4, device=i0.device)] * wts[..., None]).sum(1)
 
 
 def truncation_power(design, scale: torch.Tensor | None, power: torch.Tensor,

@@ -31,7 +31,7 @@ from brdfcap.core.errors import FitError
 
 from .brdf import BRDFModel, brdf_model_names, get_brdf_model, make_brdf
 from .brdf_models import BRDFSpec, diffuse_filter, directional_albedo, reciprocity_error
-from .exact_design import LocalLighting
+from .exact_design import LocalLighting, kernel_power
 from .sh import band_of_index, real_sh
 from .solve import noise_weights
 
@@ -92,6 +92,9 @@ class ParametricFit:
     prediction: torch.Tensor | None = None
     #: what else a forward model states (``fit_brdf_parametric_sh``: the lighting bandwidth)
     extra: dict = field(default_factory=dict)
+    #: ``(N, C)`` the variance the final fit weighted by (the noise model's, plus a truncation
+    #: term under a lighting known to a finite band), or ``None`` without a noise model
+    variance: torch.Tensor | None = None
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -380,6 +383,7 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
         return (pu - pd) / (2.0 * h)
 
     coarse = None
+    idx = None
     if proto.shape_parameter is not None:
         idx = used[torch.linspace(0, used.numel() - 1, min(COARSE_SAMPLES, used.numel()),
                                   device=used.device).round().long()]
@@ -388,7 +392,75 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
     fit = _variable_projection(model, proto, basis, shape_derivative, b, w, var is not None,
                                src, bounds, checks, coarse=coarse, xatol=1e-7,
                                grid_points=COARSE_GRID)
-    fit.extra = {"lighting_lmax": k,
-                 "forward_model": "reflection equation by quadrature of the model "
-                                  "(fit.exact_design), known SH lighting to l = " + str(k)}
+    extra = {"lighting_lmax": k,
+             "forward_model": "reflection equation by quadrature of the model "
+                              "(fit.exact_design), known SH lighting to l = " + str(k)}
+    if var is not None and proto.shape_parameter is not None:
+        # the lighting above K, unknown to the model, as noise (docs/fitting.md, "Parametric
+        # BRDF under known lighting"): variance tau_c^2 t_pc, t the kernel's power above K
+        t = _power_above(fit.spec, n, r, k, LocalLighting(n, r, L))
+        tau2, gain = _truncation_scale(b - fit.prediction, var, t, w > 0)
+        extra["truncation"] = {"tau2": tau2.tolist(), "log_likelihood_gain": gain.tolist(),
+                               "applied": bool((tau2 > 0).any())}
+        if bool((tau2 > 0).any()):
+            var2 = var + tau2[None, :] * t
+            w2 = noise_weights(b, var2)[0] * (w > 0)
+            dom = int(((tau2[None, :] * t > var) & (w > 0)).any(-1).sum())
+            src2 = (f"{src}; plus the lighting above l = {k} (the known lighting's last band) "
+                    f"as noise, tau^2 t_p with t_p each sample's kernel power above l = {k} and "
+                    f"tau^2 = {', '.join(f'{x:.3g}' for x in tau2.tolist())} by maximum "
+                    f"likelihood from the residual: {dom} of {used.numel()} samples (the "
+                    f"lobes the horizon cuts) have it above their pixel noise")
+            th = float(fit.values[proto.shape_parameter])
+            coarse2 = None if coarse is None else (coarse[0], coarse[1], w2[idx])
+            fit = _variable_projection(model, proto, basis, shape_derivative, b, w2, True, src2,
+                                       (th / math.e, th * math.e), checks, coarse=coarse2,
+                                       xatol=1e-7, grid_points=9)
+            fit.variance = var2
+            extra["truncation"]["samples_above_noise"] = dom
+    if fit.variance is None and var is not None:
+        fit.variance = var
+    fit.extra = extra
     return fit
+
+
+#: A truncation variance is added only where it raises the log-likelihood of the residual by at
+#: least this much per channel (about a 3 sigma likelihood-ratio test on one parameter).
+TRUNCATION_MIN_GAIN = 4.5
+
+
+def _power_above(spec: BRDFSpec, n, r, k: int, lighting: LocalLighting) -> torch.Tensor:
+    """``(N, C)`` each sample's kernel power above band ``k`` (Parseval; clamped at 0)."""
+    total = kernel_power(spec, n, r, k)
+    within = lighting.power_within(spec.brdf, spec.kd)
+    return (total - within).clamp_min(0.0)
+
+
+def _truncation_scale(res, var, t, used) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return per channel ``τ² ≥ 0`` and its log-likelihood gain over ``τ² = 0``.
+
+    ``τ²`` maximises the Gaussian likelihood of ``res`` under variance ``var + τ² t``; it is
+    set to 0 where the gain is below :data:`TRUNCATION_MIN_GAIN`.
+    """
+    from scipy.optimize import minimize_scalar
+
+    tau2 = torch.zeros(res.shape[1], dtype=torch.float64)
+    gain = torch.zeros(res.shape[1], dtype=torch.float64)
+    for c in range(res.shape[1]):
+        m = used[:, c] & (t[:, c] > 0)
+        if int(m.sum()) < 3:
+            continue
+        r2, v, tc = (x[m, c].double().cpu() for x in (res * res, var, t))
+
+        def nll(log_tau2):
+            tot = v + math.exp(log_tau2) * tc
+            return 0.5 * float((torch.log(tot / v) + r2 / tot - r2 / v).sum())
+
+        ref = float((v / tc).median())
+        sol = minimize_scalar(nll, bounds=(math.log(ref) - 30.0, math.log(ref) + 10.0),
+                              method="bounded", options={"xatol": 1e-3})
+        g = -float(sol.fun)
+        gain[c] = g
+        if g >= TRUNCATION_MIN_GAIN:
+            tau2[c] = math.exp(sol.x)
+    return tau2, gain

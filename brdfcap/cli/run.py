@@ -173,7 +173,10 @@ class LmaxType(click.ParamType):
                    + "; ".join(f"{n}: {PROBLEMS[n].description}" for n in PROBLEM_CHOICES)
                    + ".")
 @click.option("--brdf", type=click.Choice(BRDF_NAMES),  # the BRDF-model registry
-              default=None, help="BRDF model (default: capture.toml [material].model).")
+              default=None, help="BRDF model (default: capture.toml [material].model). Problem "
+                                 "brdf fits its parameters under distant lights and, on the "
+                                 "exact reflection equation, under known SH lighting (beside "
+                                 "the model-free rho_l; docs/fitting.md).")
 @click.option("--rule", type=click.Choice(["gcv", "discrepancy", "none"]), default="gcv",
               show_default=True,
               help="How the Tikhonov weight is chosen in problems brdf, both and decomposition "

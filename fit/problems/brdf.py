@@ -2,7 +2,10 @@
 
 Under known distant lights a parametric model is fitted (:mod:`brdfcap.fit.parametric`); under
 known environment lighting the radially symmetric SH-domain filter ``Â_l`` and ``kd``
-(:func:`brdfcap.fit.inverse_brdf.fit_brdf_sh`).
+(:func:`brdfcap.fit.inverse_brdf.fit_brdf_sh`, the measurement that assumes no model) and, when
+a model is named (``--brdf`` or ``[material].model``), its parameters on the exact reflection
+equation (:func:`brdfcap.fit.parametric.fit_brdf_parametric_sh`; ``docs/fitting.md``, "a
+parametric BRDF under known environment lighting").
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from brdfcap.core.errors import FitError
 
 from ..brdf import as_brdf_model
 from ..brdf_models import diffuse_filter, render_directional
+from ..conditioning import residual_adequacy
 from ..inverse_brdf import fit_brdf_sh
 from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric_models
 from ..records import conditioning_json
@@ -47,7 +51,7 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
     rec = {"brdf": {"model": model, "parameters": f.spec.parameters(),
                     "stderr": {k: v.tolist() for k, v in f.stderr.items()},
                     "chi2_reduced": f.chi2_reduced, "checks": f.checks,
-                    "source": "fitted (known distant lights)", "parametric": f.to_json()}}
+                    "source": "fitted under known distant lights", "parametric": f.to_json()}}
     summ = [f"Problem 2 (inverse BRDF, known distant lights): {model} fit "
             + ", ".join(f"{k} = {fmt(v)} ± {fmt(f.stderr[k])}"
                         for k, v in f.values.items()) + "."]
@@ -71,7 +75,7 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     sh_json = fit.to_json()
     rec = {"brdf": {"model": "sh-radial", "parameters": {"kd": None if fit.kd is None
                                                          else fit.kd.tolist()},
-                    "sh": sh_json, "source": "fitted (known SH lighting)"},
+                    "sh": sh_json, "source": "fitted under known SH lighting"},
            "conditioning": conditioning_json(None, fit)}
     summ = [f"Problem 2 (inverse BRDF, known SH lighting): radial filter to l = {fit.lmax}; "
             f"first ill-conditioned band {fit.ill_conditioned_from_l} measured, "
@@ -96,9 +100,12 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     rec = {"brdf": {"model": model, "parameters": par.spec.parameters(),
                     "stderr": {k: v.tolist() for k, v in par.stderr.items()},
                     "chi2_reduced": par.chi2_reduced, "checks": par.checks,
-                    "source": "fitted (known SH lighting, exact reflection equation)",
+                    "source": "fitted under known SH lighting, exact reflection equation",
                     "parametric": par.to_json(), "sh": sh_json},
            "conditioning": rec["conditioning"]}
+    if par.variance is not None:  # judged on the variance the fit weighted by
+        rec["adequacy"] = residual_adequacy(samples.radiance, par.prediction, par.variance,
+                                            view=samples.view, n_params=len(par.names))
     summ = [f"Problem 2 (inverse BRDF, known SH lighting to l = {par.extra['lighting_lmax']}): "
             f"{model} fit " + ", ".join(f"{k} = {fmt(v)} ± {fmt(par.stderr[k])}"
                                         for k, v in par.values.items())
@@ -148,5 +155,5 @@ def problem_brdf(samples, known: Known, opts: FitOptions) -> FitResult:
 
 register_problem(Problem(
     "brdf", problem_brdf,
-    "the BRDF with the lighting known: parametric (distant lights) or radial SH filter "
-    "(known SH lighting)", needs_known_lighting=True))
+    "the BRDF with the lighting known: parametric (distant lights); radial SH filter and, "
+    "with a model named, its parameters (known SH lighting)", needs_known_lighting=True))

@@ -41,7 +41,7 @@ def problem_brdf_isotropic(samples, known: Known, opts: FitOptions) -> FitResult
                     "isotropic": {"convention": "rho_lpq, R&H 2001 eq. 16, indexed [l, p, |q|]",
                                   "coefficients": coeffs, "bands": fit["bands"],
                                   "ill_conditioned_from_l": fit["ill_conditioned_from_l"]},
-                    "source": "fitted (known SH lighting)"},
+                    "source": "fitted under known SH lighting"},
            "conditioning": {"definition": ILL_CONDITIONING_DEFINITION,
                             "brdf": {"measured": fit["ill_conditioned_from_l"]}}}
     summ = [f"Problem 2 (isotropic BRDF ρ̂_lpq, known SH lighting): {len(idx)} coefficients per "
