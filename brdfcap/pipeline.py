@@ -119,12 +119,15 @@ class RunOutcome:
     fit: FitResult | None = None
 
 
-def _clip_levels(capture: Capture) -> torch.Tensor | None:
-    """``(V,)`` clip level per view (``View.info["clip_level"]``; inf where none), or None."""
-    lv = [v.info.get("clip_level") for v in capture.views]
+def _view_levels(capture: Capture, key: str, absent: float) -> torch.Tensor | None:
+    """``(V,)`` ``View.info[key]`` per view (``absent`` where a view has none), or None.
+
+    ``clip_level`` (absent: ``inf``) and ``dark_level`` (absent: ``-inf``), in radiance units.
+    """
+    lv = [v.info.get(key) for v in capture.views]
     if all(x is None for x in lv):
         return None
-    return torch.tensor([math.inf if x is None else float(x) for x in lv], dtype=torch.float64)
+    return torch.tensor([absent if x is None else float(x) for x in lv], dtype=torch.float64)
 
 
 def known_of(capture: Capture, options: RunOptions, samples: Samples | None = None) -> Known:
@@ -162,7 +165,8 @@ def known_of(capture: Capture, options: RunOptions, samples: Samples | None = No
                  noise=cfg.noise, geometry_source=cfg.geometry_source,
                  image_shape=(cfg.camera.height, cfg.camera.width),
                  colour_corrected=cfg.colour is not None,
-                 clip_level=_clip_levels(capture),
+                 clip_level=_view_levels(capture, "clip_level", math.inf),
+                 dark_level=_view_levels(capture, "dark_level", -math.inf),
                  texture_model=texture_model_from_config(cfg.raw, cfg.root, cfg.toml_path)
                  if options.problem == "aldrian-smith" else None,
                  colour_reference=colour_ref)

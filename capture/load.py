@@ -251,6 +251,8 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
         info["clip_level"] = float(sat_level) / float(spec.exposure)
     if config.dark_floor is not None:
         info["dark_pixels"] = n_dark
+        # likewise the floor: the fits leave out the samples their prediction puts near it
+        info["dark_level"] = float(config.dark_floor) / float(spec.exposure)
     return View(index=index, spec=spec, radiance=radiance, mask=mask, variance=variance, info=info)
 
 

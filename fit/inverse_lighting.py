@@ -69,7 +69,8 @@ from .structured_truncation import (
 __all__ = ["fit_lighting", "lighting_design", "design_used", "predict_radiance", "internal_lmax",
            "internal_prediction", "reported_bands_share",
            "SHRows", "LiveRows", "INTERNAL_REL", "INTERNAL_LMAX_CAP", "SH_TABLE_ENTRIES",
-           "SH_TABLE_MEMORY", "truncation_lmax", "TRUNCATION_NOISE_FRACTION", "kernel_power",
+           "SH_TABLE_MEMORY", "truncation_lmax", "near_limits", "limits_note",
+           "TRUNCATION_NOISE_FRACTION", "kernel_power",
            "truncation_power", "truncation_scale", "TRUNCATION_ITERATIONS", "TRUNCATION_TOL",
            "TRUNCATION_REL", "TRUNCATION_QUANTILE", "TRUNCATION_LMAX_CAP", "LIVE_TABLE_ENTRIES",
            "resolved_tail_power", "REPORTED_SHARE_ABS", "REPORTED_SHARE_RATIO", "leverage",
@@ -738,13 +739,52 @@ def cut_weight(cut: torch.Tensor, alpha: float) -> torch.Tensor:
 CLIP_SIGMAS = 4.0
 
 
+def near_limits(pred: torch.Tensor, variance: torch.Tensor, clip: torch.Tensor | None = None,
+                dark: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(near clip, near floor)`` ``(N,)``: the samples the loader's masks select on the noise.
+
+    The loader masks a pixel whose *observed* value reaches the clip in some channel, or lies
+    below the dark floor in every channel; of the pixels whose true value sits near either, it
+    keeps those the noise moved away. Decided on the prediction instead: near the clip where
+    ``pred + CLIP_SIGMAS·sd ≥ clip`` in some channel, near the floor where
+    ``pred − CLIP_SIGMAS·sd ≤ floor`` in every channel (``sd`` from ``variance`` at the
+    prediction; ``clip``/``dark`` ``(N,)`` or ``(N, C)`` per sample, ``±inf`` for none).
+    """
+    sd = variance.clamp_min(0.0).sqrt()
+    n = pred.shape[0]
+    nc = torch.zeros(n, dtype=torch.bool, device=pred.device)
+    nd = torch.zeros_like(nc)
+    if clip is not None:
+        cl = clip.to(device=pred.device, dtype=pred.dtype).reshape(n, -1)
+        nc = (pred + CLIP_SIGMAS * sd >= cl).any(-1)
+    if dark is not None:
+        dk = dark.to(device=pred.device, dtype=pred.dtype).reshape(n, -1)
+        nd = (pred - CLIP_SIGMAS * sd <= dk).all(-1)
+    return nc, nd
+
+
+def limits_note(n_clip: int, n_dark: int) -> str:
+    """Return :func:`near_limits`' counts in words, for a noise source ('' for none)."""
+    parts = []
+    if n_clip:
+        parts.append(f"{n_clip} samples whose fitted value is within {CLIP_SIGMAS:g} noise s.d. "
+                     "of their clip level")
+    if n_dark:
+        parts.append(f"{n_dark} whose fitted value is within {CLIP_SIGMAS:g} noise s.d. of the "
+                     "dark floor in every channel")
+    if not parts:
+        return ""
+    return " and ".join(parts) + " left out (decided on the fit, not on the noisy value)"
+
+
 def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
                  brdf: BRDFSpec | None = None, reflected: torch.Tensor | None = None,
                  variance: torch.Tensor | None = None, rule: str = "gcv",
                  noise_model=None, band_penalty: torch.Tensor | None = None,
                  scale_fixing: str = "", chunk: int = 32768, method: str = "bayes",
                  view: torch.Tensor | None = None, lmax_internal: int | None = None,
-                 design: str = "exact", clip: torch.Tensor | None = None) -> SHFit:
+                 design: str = "exact", clip: torch.Tensor | None = None,
+                 dark: torch.Tensor | None = None) -> SHFit:
     """Recover SH lighting ``L_lm`` per channel from samples of a known BRDF.
 
     Parameters
@@ -777,6 +817,11 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
         which keeps, of the pixels just below it, only those the noise lowered (a bias toward
         low in the clipping channels: L00 z −1.4 to −3.9 on the glossy demo scene clipped at
         0.52; ``docs/fitting.md``, "Clipped pixels").
+    dark : torch.Tensor, optional
+        ``(N,)`` dark floor of each sample (``-inf``: none); with ``noise_model`` the refit drops
+        every sample whose fitted value is within :data:`CLIP_SIGMAS` s.d. of it in every
+        channel (the loader masks pixels whose observed channels are all below it; of those near
+        it, it keeps the ones the noise raised). :func:`near_limits`.
     method : {"bayes", "tikhonov"}
         ``"bayes"`` (default, issue 12): Gaussian posterior under a power-law prior on the
         spectrum fitted by the evidence, solved to :func:`internal_lmax` and marginalised to
@@ -822,7 +867,7 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
     if method == "bayes":
         fit = _fit_lighting_bayes(n, r, b, w, var is not None, src, lmax, spec, noise_model,
                                   scale_fixing, chunk, view, good, lmax_internal, design,
-                                  clip=clip)
+                                  clip=clip, dark=dark)
         fit.design = _design_record(spec, design)
         return fit
     if method != "tikhonov":
@@ -1002,7 +1047,8 @@ def _structured_applies(truncation: dict | None, lint: int, nsamp: int) -> bool:
 
 
 def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, scale_fixing,
-                        chunk, view, good, lmax_internal, design="exact", clip=None) -> SHFit:
+                        chunk, view, good, lmax_internal, design="exact", clip=None,
+                        dark=None) -> SHFit:
     """Fit by method "bayes" of :func:`fit_lighting` (issue 12; ``docs/fitting.md#uncertainty``)."""
     auto = lmax == "auto"
     lrep = 0 if auto else int(lmax)
@@ -1091,15 +1137,13 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
                                dtype=torch.float64, device=n.device)
         w, src = noise_weights(b_scan, var2)
         src += " (IRLS at the fit)"
-        if clip is not None:  # near the clip: decided on the prediction, not the noisy value
-            cl = clip.to(device=pred.device, dtype=torch.float64).reshape(pred.shape[0], -1)
-            near = ((pred + CLIP_SIGMAS * var2.clamp_min(0.0).sqrt() >= cl).any(-1)
-                    & (w > 0).any(-1))
-            if bool(near.any()):
-                w = torch.where(near[:, None], torch.zeros_like(w), w)
-                src += (f"; {int(near.sum())} samples whose fitted value is within "
-                        f"{CLIP_SIGMAS:g} noise s.d. of their clip level left out (decided on "
-                        f"the fit, not on the noisy value)")
+        if clip is not None or dark is not None:  # decided on the prediction, not the noise
+            nc, nd = near_limits(pred, var2, clip, dark)
+            used = (w > 0).any(-1)
+            nc, nd = nc & used, nd & used & ~nc
+            if bool((nc | nd).any()):
+                w = torch.where((nc | nd)[:, None], torch.zeros_like(w), w)
+                src += "; " + limits_note(int(nc.sum()), int(nd.sum()))
         w = w if perm is None else w[perm]
         noise_known = True
         full = in_scan_order(solve_bayes(design_f, b, w, band, noise_known=True,

@@ -130,7 +130,8 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
                             albedo: torch.Tensor | None = None,
                             noise_model=None, chunk: int = 32768, rule: str = "gcv",
                             view: torch.Tensor | None = None,
-                            clip: torch.Tensor | None = None) -> SHFit:
+                            clip: torch.Tensor | None = None,
+                            dark: torch.Tensor | None = None) -> SHFit:
     """Recover SH lighting ``L_lm`` (per channel) from Lambertian pixels by weighted LS.
 
     Thin wrapper of :func:`brdfcap.fit.inverse_lighting.fit_lighting` with a Lambertian BRDF
@@ -159,6 +160,8 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
         ``(N,)`` view index per sample (split-half reproducibility, per-view residuals).
     clip : torch.Tensor, optional
         Clip level per sample (:func:`~brdfcap.fit.inverse_lighting.fit_lighting`).
+    dark : torch.Tensor, optional
+        Dark floor per sample (:func:`~brdfcap.fit.inverse_lighting.fit_lighting`).
 
     Returns
     -------
@@ -182,7 +185,7 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
     spec = BRDFSpec("lambertian", kd=kd)
     return fit_lighting(normals, radiance, lmax, brdf=spec, variance=variance, rule=rule,
                         noise_model=noise_model, scale_fixing=scale_fixing, chunk=chunk,
-                        view=view, clip=clip)
+                        view=view, clip=clip, dark=dark)
 
 
 def fit_albedo_directional(normals: torch.Tensor, wi: torch.Tensor, light_radiance: torch.Tensor,

@@ -39,7 +39,8 @@ def lambertian_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
     fit = fit_lighting_lambertian(samples.normal, samples.radiance, opts.lmax,
                                   variance=samples.variance, albedo=alb_known,
                                   noise_model=known.noise, rule=opts.rule,
-                                  view=samples.view, clip=known.clip_of(samples))
+                                  view=samples.view, clip=known.clip_of(samples),
+                                  dark=known.dark_of(samples))
     albedo = alb_known if alb_known is not None else torch.ones(3, dtype=torch.float64)
     pred = lambertian_radiance_sh(samples.normal, fit.coefficients,
                                   albedo.to(samples.normal.device))

@@ -85,16 +85,21 @@ class Known:
     #: view without one), or ``None``: the lighting fit drops the samples its *prediction* puts
     #: near it (:func:`brdfcap.fit.inverse_lighting.fit_lighting` ``clip``)
     clip_level: torch.Tensor | None = None
+    #: ``(V,)`` ``dark_floor`` of each view in radiance units (``-inf`` for a view without one),
+    #: or ``None``: the loader masks a pixel whose channels are all below it, so the fits leave
+    #: out the samples their *prediction* puts near it (:func:`..problems.reweighted_samples`)
+    dark_level: torch.Tensor | None = None
     #: :attr:`lighting_sh` is a light probe's SH projection (truncated at its last band), not
     #: coefficients a capture states as the whole lighting
     lighting_from_probe: bool = False
 
     def clip_of(self, samples) -> torch.Tensor | None:
         """``(N,)`` clip level of each sample (by its view), or ``None``."""
-        if self.clip_level is None or getattr(samples, "view", None) is None:
-            return None
-        lv = self.clip_level.to(device=samples.view.device, dtype=torch.float64)
-        return lv[samples.view.long()]
+        return _per_sample(self.clip_level, samples)
+
+    def dark_of(self, samples) -> torch.Tensor | None:
+        """``(N,)`` dark floor of each sample (by its view), or ``None``."""
+        return _per_sample(self.dark_level, samples)
 
     @property
     def albedo(self) -> torch.Tensor | None:
@@ -104,6 +109,12 @@ class Known:
         return torch.as_tensor(self.material["albedo"], dtype=torch.float64)
 
 
+def _per_sample(levels: torch.Tensor | None, samples) -> torch.Tensor | None:
+    if levels is None or getattr(samples, "view", None) is None:
+        return None
+    return levels.to(device=samples.view.device, dtype=torch.float64)[samples.view.long()]
+
+
 @dataclass(frozen=True)
 class Problem:
     """A registered problem: its name, its function and what it needs known.
@@ -111,7 +122,8 @@ class Problem:
     ``needs_known_lighting``: the pipeline loads :attr:`Known.lighting_sh` before calling it.
     ``lmax_auto``: it accepts ``FitOptions.lmax = "auto"`` (the band the data determine,
     ``conditioning.suggest_lmax``); :func:`check_lmax` refuses ``"auto"`` for the others.
-    ``description``: one line for ``--help`` and ``docs/fitting.md``.
+    ``description``: one line for ``--help`` and ``docs/fitting.md``. ``reweight``: see the
+    field.
     """
 
     name: str
@@ -120,6 +132,10 @@ class Problem:
     needs_known_lighting: bool = False
     aliases: tuple[str, ...] = field(default_factory=tuple)
     lmax_auto: bool = False
+    #: :func:`brdfcap.fit.problems.solve_problem` solves it a second time with the noise
+    #: variance of its first prediction (and the samples its prediction puts near the clip left
+    #: out) — for problems that weight by the capture's noise model and do not do so themselves
+    reweight: bool = False
 
 
 #: name -> :class:`Problem`, in registration order (the CLI's ``--problem`` choices).

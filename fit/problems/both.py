@@ -69,4 +69,5 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
 
 register_problem(Problem(
     "both", problem_both,
-    "lighting and BRDF both unknown (bilinear factorisation; ambiguities listed)"))
+    "lighting and BRDF both unknown (bilinear factorisation; ambiguities listed)",
+    reweight=True))

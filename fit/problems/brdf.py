@@ -156,4 +156,5 @@ def problem_brdf(samples, known: Known, opts: FitOptions) -> FitResult:
 register_problem(Problem(
     "brdf", problem_brdf,
     "the BRDF with the lighting known: parametric (distant lights); radial SH filter and, "
-    "with a model named, its parameters (known SH lighting)", needs_known_lighting=True))
+    "with a model named, its parameters (known SH lighting)", needs_known_lighting=True,
+    reweight=True))

@@ -62,4 +62,4 @@ def problem_brdf_isotropic(samples, known: Known, opts: FitOptions) -> FitResult
 register_problem(Problem(
     "brdf-isotropic", problem_brdf_isotropic,
     "view-dependent isotropic BRDF rho_lpq (R&H 2001 eq. 16) under known SH lighting",
-    needs_known_lighting=True))
+    needs_known_lighting=True, reweight=True))

@@ -84,4 +84,5 @@ def problem_decomposition(samples, known: Known, opts: FitOptions) -> FitResult:
 
 register_problem(Problem(
     "decomposition", problem_decomposition,
-    "R&H's microfacet decomposition: slow SH lighting and the powers of known bright sources"))
+    "R&H's microfacet decomposition: slow SH lighting and the powers of known bright sources",
+    reweight=True))

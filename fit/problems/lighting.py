@@ -42,6 +42,7 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
                        reflected=samples.reflected, variance=samples.variance, rule=opts.rule,
                        noise_model=known.noise, view=samples.view, design=opts.design,
                        clip=known.clip_of(samples),
+                       dark=known.dark_of(samples),
                        scale_fixing="" if given else (
                            "no [material]: Lambertian with the albedo fixed to 1 per channel, "
                            "so the coefficients are albedo x lighting"))

@@ -295,7 +295,8 @@ def test_material_exports_say_whether_the_material_was_measured(tmp_path):
 def test_a_fitted_microfacet_exports_under_its_registry_name(model, distribution):
     """``--problem brdf --brdf beckmann`` (or ggx) writes ``brdf.model`` under the registry
     name: the material exports (it used to say "no parametric form"), and a GGX lobe keeps its
-    distribution in Mitsuba (α = σ, Walter et al. 2007 eq. 33), not Beckmann's."""
+    distribution in Mitsuba (α = σ, Walter et al. 2007 eq. 33), not Beckmann's.
+    """
     spec = material_from_results({"brdf": {"model": model, "parameters": {
         "kd": [0.3, 0.25, 0.2], "f0": [0.04] * 3, "sigma": 0.2}}})
     assert spec.model == model
