@@ -46,8 +46,9 @@ def negative_limit(noise) -> float:
     """Return the value below which a pixel is negative "beyond noise" (:data:`NEGATIVE_SIGMAS`).
 
     ``-NEGATIVE_SIGMAS`` × the read-noise floor ``sqrt(variance(0))`` of ``noise`` (a
-    :class:`~.types.NoiseModel`); 0 without a known noise model or with a non-finite floor.
-    The loader masks by it and the simulator counts the pixels it will mask.
+    :class:`~.types.NoiseModel`), in radiance units (pixel / exposure, as the noise model);
+    0 without a known noise model or with a non-finite floor. The loader masks the radiance
+    below it and the simulator counts the pixels it will mask (before exposure: the same).
     """
     if noise is None or not noise.is_known:
         return 0.0
@@ -157,8 +158,9 @@ def linearise_view(index: int, spec: ImageSpec, config: CaptureConfig) -> View:
     warn = config.warnings.append
     finite = _all_channels(np.isfinite(pixels))
     mask = finite.copy()
+    # the noise model is in radiance units (pixel / exposure): compare radiance, not raw codes
     neg_limit = negative_limit(config.noise)
-    neg = _any_channel(pixels < neg_limit) & finite
+    neg = _any_channel(pixels < neg_limit * float(spec.exposure)) & finite
     n_neg = int(neg.sum())
     mask &= ~neg
     n_sat = 0

@@ -634,13 +634,13 @@ def _live_columns(g: torch.Tensor) -> torch.Tensor:
     return (g != 0).any(-1)
 
 
-#: From this order up a dense factorisation keeps the process threads (:func:`_lapack_one_thread`).
+#: From this order up a dense factorisation keeps the process threads (:func:`_lapack_threads_for`).
 LAPACK_PARALLEL_MIN = 600
 
 
 @contextmanager
-def _lapack_one_thread(k: int = 0):
-    """Run the dense factorisation of one ``k × k`` matrix on one thread when it is small.
+def _lapack_threads_for(k: int = 0):
+    """Run the dense factorisation of one ``k × k`` matrix on one thread below 600 columns.
 
     Measured on the shared 2-core VM (load 4): ``eigh`` of 234² costs 2.7 ms CPU on one thread
     and 4–8 ms on two, 625² 32 against 54–78 ms, 1024² 150 against 165 ms, and inside the
@@ -674,7 +674,7 @@ def _eigh_live(g: torch.Tensor, sc: torch.Tensor, live: torch.Tensor
     idx = torch.nonzero(live).flatten()
     nl = int(idx.numel())
     gl = g if nl == kc else g[idx[:, None], idx[None, :]]
-    with _lapack_one_thread(nl):
+    with _lapack_threads_for(nl):
         try:
             ev, u = torch.linalg.eigh(gl / sc)
         except torch.linalg.LinAlgError:  # e.g. an exactly rank-1 Gram (all normals equal)
@@ -700,7 +700,7 @@ def _shifted_inverse(m: torch.Tensor, lam: float, live: torch.Tensor) -> torch.T
     else:
         ml = m[idx[:, None], idx[None, :]]
     ml.diagonal().add_(lam)
-    with _lapack_one_thread(int(ml.shape[0])):
+    with _lapack_threads_for(int(ml.shape[0])):
         inv_l = torch.cholesky_inverse(torch.linalg.cholesky(ml))
     if int(idx.numel()) == kc:
         return inv_l

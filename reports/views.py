@@ -80,7 +80,7 @@ def _measured_text(first, bands: list[dict] | None = None) -> str:
     note = ""
     if bounded:
         worst = max((b.get("norm_upper_bound_rel") or 0.0) for b in bounded)
-        ls = ", ".join(str(b["l"]) for b in bounded)
+        ls = _band_list(sorted(int(b["l"]) for b in bounded))
         note = (f"; l = {ls} bounded: no power above {fmt_num(100 * worst, 2)}% of the "
                 f"lighting's norm")
     if first is None:

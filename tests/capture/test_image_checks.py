@@ -63,6 +63,21 @@ def test_negative_pixels_beyond_noise_are_masked(tmp_path):
     assert not view.mask[0, 0] and view.info["negative_pixels"] == 2
 
 
+def test_negative_beyond_noise_is_judged_in_radiance_whatever_the_exposure(tmp_path):
+    """The noise model is in radiance units (pixel / exposure): at exposure 4 a raw value of
+    -4.04 x 5 sigma is radiance -1.01 x 5 sigma (masked), a raw -1.01 x 5 sigma is radiance
+    -0.25 x 5 sigma (noise: kept). Before, raw values were compared: the second was masked."""
+    img = _ramp()
+    lim = NEGATIVE_SIGMAS * 0.01
+    img[0, 0, 1] = -1.01 * lim
+    img[0, 1, 1] = -4.04 * lim
+    f = write_image(tmp_path / "images" / "a.exr", img)
+    cfg = _config(tmp_path, noise=NoiseModel(read=0.01))
+    view = linearise_view(0, ImageSpec(file=f, world_to_camera=np.eye(3, 4), exposure=4.0), cfg)
+    assert view.mask[0, 0] and not view.mask[0, 1]
+    assert view.info["negative_pixels"] == 1
+
+
 def test_flat_top_detection():
     img = _ramp()
     valid = np.ones(img.shape[:2], bool)
