@@ -32,7 +32,8 @@ from .base import (
 )
 
 __all__ = ["PROBLEMS", "FIT_SCHEMA", "Problem", "FitOptions", "Known", "FitResult", "Estimate",
-           "solve_problem", "reweighted_samples", "REWEIGHT_MIN_CHANGE", "register_problem",
+           "solve_problem", "reweighted_samples", "REWEIGHT_MIN_CHANGE", "REWEIGHT_MAX_GAIN",
+           "register_problem",
            "get_problem", "check_lmax", "brdf_from_material",
            "lighting_json", "conditioning_json", "auto", "lighting", "brdf", "brdf_isotropic",
            "both", "decomposition", "aldrian_smith", "brdf_map"]
@@ -63,6 +64,8 @@ def solve_problem(name: str, samples, known: Known, options: FitOptions) -> FitR
 #: The second solve is skipped when no sample's noise variance at the prediction differs from
 #: the one at its observed value by more than this fraction (a constant noise model).
 REWEIGHT_MIN_CHANGE = 1e-3
+#: No sample's weight rises above this many times its weight at the observed value.
+REWEIGHT_MAX_GAIN = 4.0
 
 
 def reweighted_samples(res: FitResult, samples, known: Known):
@@ -94,7 +97,10 @@ def reweighted_samples(res: FitResult, samples, known: Known):
           & (var > 0).all(-1))
     var2 = torch.as_tensor(noise.variance(pred.detach().cpu().numpy()), dtype=torch.float64,
                            device=b.device)
-    var2 = torch.where(ok[:, None] & (var2 > 0), var2, var)
+    # a prediction far below the data (a model that does not fit) must not buy a sample
+    # unbounded weight: at most REWEIGHT_MAX_GAIN x its observed-value weight
+    var2 = torch.where(ok[:, None] & (var2 > 0), torch.maximum(var2, var / REWEIGHT_MAX_GAIN),
+                       var)
     nc, nd = near_limits(pred, var2, known.clip_of(samples), known.dark_of(samples))
     nc, nd = nc & ok, nd & ok & ~nc
     near = nc | nd

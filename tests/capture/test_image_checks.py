@@ -66,7 +66,8 @@ def test_negative_pixels_beyond_noise_are_masked(tmp_path):
 def test_negative_beyond_noise_is_judged_in_radiance_whatever_the_exposure(tmp_path):
     """The noise model is in radiance units (pixel / exposure): at exposure 4 a raw value of
     -4.04 x 5 sigma is radiance -1.01 x 5 sigma (masked), a raw -1.01 x 5 sigma is radiance
-    -0.25 x 5 sigma (noise: kept). Before, raw values were compared: the second was masked."""
+    -0.25 x 5 sigma (noise: kept). Before, raw values were compared: the second was masked.
+    """
     img = _ramp()
     lim = NEGATIVE_SIGMAS * 0.01
     img[0, 0, 1] = -1.01 * lim

@@ -17,7 +17,7 @@ import torch
 from brdfcap.capture.simulate import simulate
 from brdfcap.capture.types import NoiseModel
 from brdfcap.fit.inverse_lighting import CLIP_SIGMAS
-from brdfcap.fit.problems import PROBLEMS, Known, reweighted_samples
+from brdfcap.fit.problems import PROBLEMS, REWEIGHT_MAX_GAIN, Known, reweighted_samples
 from brdfcap.reconstruct.geometry import Samples
 from click.testing import CliRunner
 
@@ -42,6 +42,21 @@ def test_the_variance_is_the_noise_model_at_the_prediction():
                           rtol=1e-14, atol=0)
     assert got.radiance is b and note["left_out_near_clip"] == 0
     assert note["max_weight_change"] > 0.1 and "prediction" in note["text"]
+
+
+def test_a_prediction_far_below_the_data_buys_no_unbounded_weight():
+    """A model that misses the data (prediction 0 where 0.5 was observed) must not give that
+    pixel the read-noise weight, 600x its observed-value weight: at most REWEIGHT_MAX_GAIN.
+    """
+    noise = NoiseModel(read=0.002, relative=0.05)
+    b = torch.tensor([[0.5, 0.5, 0.5], [0.4, 0.4, 0.4]], dtype=torch.float64)
+    pred = torch.tensor([[0.0, 0.0, 0.0], [0.4, 0.4, 0.4]], dtype=torch.float64)
+    var = torch.as_tensor(noise.variance(b.numpy()))
+    got, _ = reweighted_samples(SimpleNamespace(prediction=pred), _samples(b, var),
+                                Known(noise=noise))
+    assert torch.allclose(var[0] / got.variance[0], torch.full((3,), REWEIGHT_MAX_GAIN,
+                                                                 dtype=torch.float64))
+    assert torch.allclose(got.variance[1], var[1])
 
 
 def test_a_constant_noise_model_needs_no_second_solve():
