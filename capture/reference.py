@@ -185,11 +185,9 @@ class LatLongProbe:
         The texels (``height × 2·height``, default ``max(32, 8 (lmax+1))`` rows) hold the
         same function at their centres for the texel quadratures.
         """
-        from brdfcap.fit.envmap import reconstruct_envmap
+        from brdfcap.fit.envmap import reconstruct_envmap, sh_columns
 
-        c = coeffs.to(torch.float64)
-        c = c[:, None] if c.ndim == 1 else c
-        lmax = math.isqrt(c.shape[0]) - 1
+        c, lmax, _ = sh_columns(coeffs)
         h = height or max(32, 8 * (lmax + 1))
         return cls(reconstruct_envmap(c, h, 2 * h), "cubic", rotation, c)
 

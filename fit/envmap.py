@@ -54,6 +54,7 @@ __all__ = [
     "project_envmap",
     "reconstruct_envmap",
     "evaluate_sh",
+    "sh_columns",
 ]
 
 FRAME_DESCRIPTION = (
@@ -224,8 +225,12 @@ def project_envmap(image: torch.Tensor, lmax: int, quadrature: str = "fejer",
     return out[:, 0] if squeeze else out
 
 
-def _coefficient_columns(coeffs: torch.Tensor) -> tuple[torch.Tensor, int, bool]:
-    """``(c ((lmax+1)², C) float64, lmax, squeeze)`` of ``(K[, C])`` SH coefficients."""
+def sh_columns(coeffs: torch.Tensor) -> tuple[torch.Tensor, int, bool]:
+    """Return ``(c ((lmax+1)², C) float64, lmax, squeeze)`` of ``(K[, C])`` SH coefficients.
+
+    ``squeeze``: the input was 1-D (one channel). Raises ``ValueError`` when ``K`` is not a
+    square.
+    """
     squeeze = coeffs.ndim == 1
     c = (coeffs[:, None] if squeeze else coeffs).to(torch.float64)
     k = c.shape[0]
@@ -237,7 +242,7 @@ def _coefficient_columns(coeffs: torch.Tensor) -> tuple[torch.Tensor, int, bool]
 
 def reconstruct_envmap(coeffs: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """Evaluate ``Σ L_lm y_lm`` at the pixel centres: ``(K[, C]) -> (H, W[, C])`` float64."""
-    c, lmax, squeeze = _coefficient_columns(coeffs)
+    c, lmax, squeeze = sh_columns(coeffs)
     p = _legendre_rows(height, lmax)
     cos_m, sin_m = _trig(width, lmax)
     r2 = math.sqrt(2.0)
@@ -269,7 +274,7 @@ def evaluate_sh(coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     integrates when the lighting *is* SH (``capture.reference.LatLongProbe.from_sh``).
     ``coeffs`` ``((lmax+1)², C)`` or ``((lmax+1)²,)`` (then the result drops ``C``).
     """
-    c, lmax, squeeze = _coefficient_columns(coeffs)
+    c, lmax, squeeze = sh_columns(coeffs)
     c = c.to(dirs.device)
     flat = dirs.reshape(-1, 3).to(torch.float64)
     out = flat.new_empty(flat.shape[0], c.shape[1])
