@@ -32,11 +32,13 @@ from brdfcap.core.errors import FitError
 from .brdf import BRDFModel, brdf_model_names, get_brdf_model, make_brdf
 from .brdf_models import BRDFSpec, diffuse_filter, directional_albedo, reciprocity_error
 from .exact_design import LocalLighting, kernel_power
+from .memory import available_bytes, format_bytes
 from .sh import band_of_index, real_sh
 from .solve import noise_weights
 
 __all__ = ["ParametricFit", "fit_brdf_parametric", "fit_brdf_parametric_sh", "parametric_models",
            "PARAMETRIC_MODELS", "COARSE_SAMPLES", "COARSE_ANGLES", "COARSE_GRID", "SHAPE_STEP",
+           "LOCAL_LIGHTING_MEMORY", "MIN_FIT_SAMPLES",
            "SHAPE_BOUNDS"]
 
 
@@ -295,7 +297,7 @@ SHAPE_STEP = 1e-4
 def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.Tensor,
                            light_sh: torch.Tensor, variance: torch.Tensor | None = None,
                            model: str = "phong", bounds: tuple[float, float] | None = None,
-                           checks: bool = True) -> ParametricFit:
+                           checks: bool = True, max_bytes: int | None = None) -> ParametricFit:
     r"""Fit a parametric BRDF to samples under known SH environment lighting.
 
     The forward model is the reflection equation itself (R&H 2001 eq. 1), not its
@@ -330,11 +332,16 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
         ``(N, C)`` noise variance (``None``: uniform weights, σ² from the residual).
     model : str
         One of :func:`parametric_models`.
+    max_bytes : int, optional
+        Memory for the lighting in the samples' frames (default :data:`LOCAL_LIGHTING_MEMORY`
+        of the free memory); beyond it the fit uses an evenly strided subset of the samples
+        (``extra["fitted_samples"]``, standard errors of the subset) and predicts all.
 
     Returns
     -------
     ParametricFit
-        ``prediction`` for every sample; ``extra``: ``lighting_lmax``, ``forward_model``.
+        ``prediction`` for every sample; ``extra``: ``lighting_lmax``, ``forward_model``,
+        ``truncation`` and, when a subset was fitted, ``fitted_samples``.
     """
     proto = _prototype(model, radiance.shape[-1])
     f64 = torch.float64
@@ -372,7 +379,22 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
     used = torch.nonzero((w > 0).any(-1)).flatten()
     if used.numel() < 3:
         raise FitError(f"only {used.numel()} usable samples: too few to fit a {model} BRDF")
-    basis = basis_of(LocalLighting(n, r, L), diffuse)
+    # the lighting in every sample's frame is N x C x (K+1)(K+2)/2 values: beyond the memory
+    # budget the fit runs on an evenly strided subset (its errors are the subset's) and only
+    # the prediction of the others is computed, chunk by chunk
+    per = 8 * b.shape[1] * (k + 1) * (k + 2) // 2
+    budget = int(LOCAL_LIGHTING_MEMORY * available_bytes(n.device)) if max_bytes is None \
+        else int(max_bytes)
+    m_cap = max(MIN_FIT_SAMPLES, budget // per)
+    subset = None
+    if used.numel() > m_cap:
+        subset = used[torch.linspace(0, used.numel() - 1, m_cap,
+                                     device=used.device).round().long()]
+    rows = subset if subset is not None else slice(None)
+    nf, rf, bf, wf, df = n[rows], r[rows], b[rows], w[rows], diffuse[rows]
+    vf = None if var is None else var[rows]
+    lighting = LocalLighting(nf, rf, L)
+    basis = basis_of(lighting, df)
 
     def shape_derivative(theta, x):
         t = float(theta)
@@ -385,43 +407,88 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
     coarse = None
     idx = None
     if proto.shape_parameter is not None:
-        idx = used[torch.linspace(0, used.numel() - 1, min(COARSE_SAMPLES, used.numel()),
-                                  device=used.device).round().long()]
-        coarse = (basis_of(LocalLighting(n[idx], r[idx], L, angles=COARSE_ANGLES), diffuse[idx]),
-                  b[idx], w[idx])
-    fit = _variable_projection(model, proto, basis, shape_derivative, b, w, var is not None,
+        fused = torch.nonzero((wf > 0).any(-1)).flatten()
+        idx = fused[torch.linspace(0, fused.numel() - 1, min(COARSE_SAMPLES, fused.numel()),
+                                   device=fused.device).round().long()]
+        coarse = (basis_of(LocalLighting(nf[idx], rf[idx], L, angles=COARSE_ANGLES), df[idx]),
+                  bf[idx], wf[idx])
+    fit = _variable_projection(model, proto, basis, shape_derivative, bf, wf, vf is not None,
                                src, bounds, checks, coarse=coarse, xatol=1e-7,
                                grid_points=COARSE_GRID)
     extra = {"lighting_lmax": k,
              "forward_model": "reflection equation by quadrature of the model "
                               "(fit.exact_design), known SH lighting to l = " + str(k)}
-    if var is not None and proto.shape_parameter is not None:
+    if subset is not None:
+        extra["fitted_samples"] = {
+            "count": int(subset.numel()), "of": int(used.numel()),
+            "why": f"the lighting in each sample's frame at l = {k} for all of them would "
+                   f"need {format_bytes(per * n.shape[0])}, over {LOCAL_LIGHTING_MEMORY:.0%} of "
+                   "the free memory: fitted on an evenly strided subset (its standard errors), "
+                   "predicted for all"}
+    tau2 = None
+    if vf is not None and proto.shape_parameter is not None:
         # the lighting above K, unknown to the model, as noise (docs/fitting.md, "Parametric
         # BRDF under known lighting"): variance tau_c^2 t_pc, t the kernel's power above K
-        t = _power_above(fit.spec, n, r, k, LocalLighting(n, r, L))
-        tau2, gain = _truncation_scale(b - fit.prediction, var, t, w > 0)
+        t = _power_above(fit.spec, nf, rf, k, lighting)
+        tau2, gain = _truncation_scale(bf - fit.prediction, vf, t, wf > 0)
         extra["truncation"] = {"tau2": tau2.tolist(), "log_likelihood_gain": gain.tolist(),
                                "applied": bool((tau2 > 0).any())}
         if bool((tau2 > 0).any()):
-            var2 = var + tau2[None, :] * t
-            w2 = noise_weights(b, var2)[0] * (w > 0)
-            dom = int(((tau2[None, :] * t > var) & (w > 0)).any(-1).sum())
+            var2 = vf + tau2[None, :] * t
+            w2 = noise_weights(bf, var2)[0] * (wf > 0)
+            dom = int(((tau2[None, :] * t > vf) & (wf > 0)).any(-1).sum())
             src2 = (f"{src}; plus the lighting above l = {k} (the known lighting's last band) "
                     f"as noise, tau^2 t_p with t_p each sample's kernel power above l = {k} and "
                     f"tau^2 = {', '.join(f'{x:.3g}' for x in tau2.tolist())} by maximum "
-                    f"likelihood from the residual: {dom} of {used.numel()} samples (the "
-                    f"lobes the horizon cuts) have it above their pixel noise")
+                    f"likelihood from the residual: {dom} of {int((wf > 0).any(-1).sum())} "
+                    f"samples (the lobes the horizon cuts) have it above their pixel noise")
             th = float(fit.values[proto.shape_parameter])
             coarse2 = None if coarse is None else (coarse[0], coarse[1], w2[idx])
-            fit = _variable_projection(model, proto, basis, shape_derivative, b, w2, True, src2,
-                                       (th / math.e, th * math.e), checks, coarse=coarse2,
-                                       xatol=1e-7, grid_points=9)
+            fit = _variable_projection(model, proto, basis, shape_derivative, bf, w2, True,
+                                       src2, (th / math.e, th * math.e), checks,
+                                       coarse=coarse2, xatol=1e-7, grid_points=9)
             fit.variance = var2
             extra["truncation"]["samples_above_noise"] = dom
-    if fit.variance is None and var is not None:
-        fit.variance = var
+        else:
+            tau2 = None
+    if fit.variance is None and vf is not None:
+        fit.variance = vf
+    if subset is not None:  # the prediction (and variance) of every sample, chunk by chunk
+        fit.prediction, fit.variance = _predict_all(fit, proto, n, r, diffuse, var, L, k,
+                                                    tau2, chunk=max(1024, budget // per))
     fit.extra = extra
     return fit
+
+
+#: Share of the free memory the lighting in the samples' frames may take
+#: (:class:`~brdfcap.fit.exact_design.LocalLighting`); beyond it the parametric fit under SH
+#: lighting runs on a subset of the samples.
+LOCAL_LIGHTING_MEMORY = 0.25
+#: The subset is never smaller than this.
+MIN_FIT_SAMPLES = 2000
+
+
+def _predict_all(fit: ParametricFit, proto: BRDFModel, n, r, diffuse, var, L, k: int,
+                 tau2, chunk: int):
+    """Prediction ``(N, C)`` (and variance, with the truncation term) for every sample."""
+    spec = fit.spec
+    model = spec.brdf
+    x0 = fit.values["kd"]
+    scale = fit.values.get(proto.scale_parameter) if proto.scale_parameter else None
+    pred = torch.empty_like(diffuse)
+    var_all = None if var is None else var.clone()
+    for s in range(0, n.shape[0], chunk):
+        e = min(s + chunk, n.shape[0])
+        p = diffuse[s:e] * x0
+        if proto.shape_parameter is not None:
+            ll = LocalLighting(n[s:e], r[s:e], L)
+            a, q = ll.radiance(model)
+            p = p + a * scale + (0.0 if q is None else q)
+            if tau2 is not None and var_all is not None:
+                var_all[s:e] = var[s:e] + tau2[None, :] * _power_above(spec, n[s:e], r[s:e], k,
+                                                                       ll)
+        pred[s:e] = p
+    return pred, var_all
 
 
 #: A truncation variance is added only where it raises the log-likelihood of the residual by at
