@@ -22,6 +22,7 @@ from .views import (
     headline,
     is_number_list,
     lmax_suggestion,
+    radial_filter_rows,
     truth_rows,
 )
 
@@ -139,6 +140,7 @@ def render_report(inp: ReportInputs) -> str:
         "light_bands": band_rows((r.get("lighting") or {}).get("bands") or []),
         "brdf_params": brdf_parameter_rows(brdf),
         "brdf_checks": check_rows(brdf),
+        "radial_filter": radial_filter_rows(brdf),
         "conditioning": conditioning_rows(r),
         "truth": truth_rows(r["ground_truth"], r) if r.get("ground_truth") else None,
         "gauge": gauge_table(r),

@@ -248,6 +248,44 @@ def brdf_parameter_rows(brdf: dict) -> list[tuple[str, str]]:
     return rows
 
 
+def radial_filter_rows(brdf: dict) -> dict | None:
+    """Return the measured SH-domain filter ``Â_l = Λ_l ρ̂_l`` (problem brdf, known lighting).
+
+    ``{"rows": [(l, value ± error per channel, status)], "kd": str | None, "first": str,
+    "ambiguities": [str]}`` from ``results.json: brdf.sh`` (``kind = "sh-radial"``), or
+    ``None``. Shown whatever model was fitted beside it: it is the measurement that assumes no
+    model (issue 12: "always show the measured ρ̂_l with errors").
+    """
+    sh = brdf.get("sh")
+    if not isinstance(sh, dict) or sh.get("kind") != "sh-radial" or not sh.get("filter"):
+        return None
+    errs = sh.get("filter_stderr") or []
+    det = sh.get("determined") or []
+    bands = {b.get("l"): b for b in sh.get("bands") or [] if isinstance(b, dict)}
+    rows = []
+    for l, val in enumerate(sh["filter"]):
+        e = errs[l] if l < len(errs) else None
+        d = det[l] if l < len(det) else None
+        ok = bool(d) and all(bool(x) for x in (d if isinstance(d, list) else [d]))
+        b = bands.get(l) or {}
+        status = "determined" if ok else "not determined"
+        no_error = e is None or (isinstance(e, list) and all(x is None for x in e))
+        if b.get("singular_max") == 0:
+            rows.append((l, "—", "not measured: the lighting has no energy in this band"))
+            continue
+        if _is_num(b.get("median_snr")):
+            status += f" (median SNR {fmt_num(b['median_snr'], 2)})"
+        rows.append((l, "—" if no_error and not ok else fmt_rgb_pm(val, e), status))
+    kd = None
+    if is_number_list(sh.get("kd")):
+        kd = fmt_rgb_pm(sh["kd"], sh.get("kd_stderr"))
+    amb = []
+    for a in sh.get("ambiguities") or []:
+        amb.append(a.get("name", str(a)) if isinstance(a, dict) else str(a))
+    return {"rows": rows, "kd": kd, "first": fmt_band(sh.get("ill_conditioned_from_l")),
+            "ambiguities": amb}
+
+
 def check_rows(brdf: dict) -> list[tuple[str, str]]:
     """Physical checks of a fitted BRDF (reciprocity, energy) as ``(name, value)``."""
     out = []

@@ -180,6 +180,13 @@ def test_parametric_brdf_under_known_lighting_recovers_the_simulated_material(
     # the report's truth comparison (simulated capture) sees the same parameters
     z = [v for row in r["ground_truth"]["brdf"] for v in row["z"]]
     assert len(z) == 7 and max(abs(v) for v in z) < 4
+    # and the report shows the model-free ρ̂_l band by band with errors (issue 12, item 6)
+    page = (out / "report.html").read_text()
+    i = page.find("Measured SH-domain filter (no model assumed)")
+    assert i > 0
+    table = page[i: page.find("</table>", i)]
+    assert table.count("<tr>") == 1 + 9 and table.count("±") >= 3 * 3
+    assert "not measured: the lighting has no energy in this band" in table
 
 
 def test_a_model_without_a_parametric_form_is_refused_in_one_line(beckmann_capture, tmp_path):
