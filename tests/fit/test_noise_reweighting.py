@@ -22,6 +22,7 @@ from brdfcap.reconstruct.geometry import Samples
 from click.testing import CliRunner
 
 from brdfcap.cli import main
+from brdfcap.testing import scene_text
 
 
 def _samples(b, var):
@@ -92,41 +93,14 @@ def test_the_problems_that_weight_by_the_noise_model_are_the_ones_reweighted():
         "brdf", "brdf-isotropic", "both", "decomposition"}
 
 
-SCENE = """
-name = "phong sphere, distant lights, 5% noise"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "phong"
-albedo = [0.3, 0.3, 0.3]
-ks = [0.5, 0.5, 0.5]
-s = 20.0
-[lighting]
-kind = "directional"
-[[lighting.lights]]
-direction = [1.0, 0.3, 0.5]
-[[lighting.lights]]
-direction = [-0.4, 0.8, 0.6]
-[[lighting.lights]]
-direction = [0.2, -0.9, 0.4]
-[camera]
-model = "pinhole"
-width = 96
-height = 96
-fov_deg = 40.0
-[views]
-count = 6
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.05
-read = 0.002
-seed = 0
-[render]
-spp = 1
-rel_tol = 1e-3
-"""
+DIRECTIONAL = ('kind = "directional"\n[[lighting.lights]]\ndirection = [1.0, 0.3, 0.5]\n'
+               '[[lighting.lights]]\ndirection = [-0.4, 0.8, 0.6]\n'
+               '[[lighting.lights]]\ndirection = [0.2, -0.9, 0.4]')
+NOISE_5 = "relative = 0.05\nread = 0.002\nseed = 0"
+SCENE = scene_text(name="phong sphere, distant lights, 5% noise", width=96,
+                   material='model = "phong"\nalbedo = [0.3, 0.3, 0.3]\nks = [0.5, 0.5, 0.5]\n'
+                            's = 20.0', lighting=DIRECTIONAL, noise=NOISE_5,
+                   tail="[render]\nspp = 1\nrel_tol = 1e-3\n")
 
 
 @pytest.mark.parametrize("saturation", [None, 0.5])
@@ -168,31 +142,9 @@ def test_samples_predicted_near_the_dark_floor_in_every_channel_are_left_out():
     assert "dark floor in every channel" in note["text"]
 
 
-LAMBERTIAN = """
-name = "lambertian sphere, 5% noise, a dark floor inside the signal"
-[geometry]
-shape = "sphere"
-radius = 1.0
-[material]
-model = "lambertian"
-albedo = [1.0, 1.0, 1.0]
-[lighting]
-kind = "environment"
-sh = "grace-rh2001-nonneg"
-[camera]
-model = "pinhole"
-width = 96
-height = 96
-fov_deg = 40.0
-[views]
-count = 6
-distance = 4.0
-elevation_deg = 30.0
-[noise]
-relative = 0.05
-read = 0.002
-seed = 0
-"""
+LAMBERTIAN = scene_text(name="lambertian sphere, 5% noise, a dark floor inside the signal",
+                        width=96, noise=NOISE_5,
+                        lighting='kind = "environment"\nsh = "grace-rh2001-nonneg"')
 
 
 def test_a_dark_floor_inside_the_signal_does_not_bias_the_lighting(tmp_path):
