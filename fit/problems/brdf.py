@@ -85,15 +85,19 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     if fit.kd is not None:
         est.append(Estimate("kd", fit.kd, fit.kd_stderr, "channel"))
     model = opts.brdf or (known.material or {}).get("model")
+    if model is not None and model not in parametric_models():
+        if opts.brdf is not None:
+            raise FitError(f"--brdf {model}: under environment lighting problem brdf fits a "
+                           f"parametric model ({', '.join(parametric_models())}) or, with no "
+                           "model named, the SH-domain filter alone", known.source)
+        summ.append(f"[material].model {model!r} has no parametric form to fit: the "
+                    "SH-domain filter alone (name one with --brdf).")
+        model = None
     if model is None or model == "sh-radial":
         return FitResult("brdf", est, pred, rec, summary=summ, bands={"brdf": fit.bands})
     # a parametric model named (--brdf or [material].model): fitted on the exact reflection
     # equation under the known lighting; the radial filter above stays as the measurement
     # that assumes no model (issue 12: "always show the measured rho_l")
-    if model not in parametric_models():
-        raise FitError(f"--brdf {model}: under environment lighting problem brdf fits a "
-                       f"parametric model ({', '.join(parametric_models())}) or, with no "
-                       "model named, the SH-domain filter alone", known.source)
     par = fit_brdf_parametric_sh(samples.normal, samples.wo, samples.radiance, light,
                                  samples.variance, model=model)
     warns = _lighting_band_warning(par, known)

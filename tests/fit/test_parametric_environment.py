@@ -218,3 +218,22 @@ def test_beyond_the_memory_budget_a_subset_is_fitted_and_every_sample_predicted(
     assert len(z) == 7 and max(abs(v) for v in z) < 4
     assert r["adequacy"]["adequate"]  # judged on every sample's prediction
     assert r["fit"]["residual_rel"] < 0.05
+
+
+def test_a_material_without_a_parametric_form_falls_back_to_the_radial_filter(tmp_path):
+    """A capture whose ``[material].model`` is a mirror (no lobe shape to fit) still runs
+    problem brdf without ``--brdf``: the SH-domain filter alone, and the notes say why.
+    """
+    d = tmp_path / "m"
+    d.mkdir()
+    (d / "s.toml").write_text(scene_text(
+        name="mirror sphere", width=32, views=2, noise=NOISE,
+        material='model = "mirror"\nalbedo = [0.1, 0.1, 0.1]\nks = [0.8, 0.8, 0.8]',
+        lighting=LIGHT))
+    cap = simulate(d / "s.toml", d / "cap")
+    out = tmp_path / "o"
+    res = CliRunner().invoke(main, ["run", str(cap), "--out", str(out), "--problem", "brdf"])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "results.json").read_text())
+    assert r["brdf"]["model"] == "sh-radial"
+    assert any("no parametric form" in n for n in r["fit_notes"])
