@@ -160,6 +160,19 @@ def test_cli_run_and_demo(tmp_path):
     assert r["lighting"]["lmax"] == 6  # past l = 2, where Lambertian lighting stops (issue #16)
 
 
+def test_demo_brdf_scene_recovers_the_material(tmp_path):
+    """``brdfcap demo --scene brdf``: the Beckmann sphere's kd, f0, σ from the reference
+    renderer's images, each within 4 standard errors; the line that says so is printed.
+    """
+    res = _invoke("demo", "--out", tmp_path / "demo", "--scene", "brdf")
+    assert res.exit_code == 0, res.output
+    assert "recovered the beckmann BRDF's kd, f0, sigma" in res.output
+    r = json.loads((tmp_path / "demo" / "results" / "results.json").read_text())
+    assert r["brdf"]["model"] == "beckmann" and r["adequacy"]["adequate"]
+    z = [v for row in r["ground_truth"]["brdf"] for v in row["z"]]
+    assert len(z) == 7 and max(abs(v) for v in z) < 4
+
+
 def _copy_capture(src, dst):
     import shutil
 
