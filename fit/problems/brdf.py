@@ -78,8 +78,8 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                     "sh": sh_json, "source": "fitted under known SH lighting"},
            "conditioning": conditioning_json(None, fit)}
     summ = [f"Problem 2 (inverse BRDF, known SH lighting): radial filter to l = {fit.lmax}; "
-            f"first ill-conditioned band {fit.ill_conditioned_from_l} measured, "
-            f"{fit.prediction['first_ill_band']} predicted from the lighting spectrum."]
+            f"first ill-conditioned band {_band(fit.ill_conditioned_from_l)} measured, "
+            f"{_band(fit.prediction['first_ill_band'])} predicted from the lighting spectrum."]
     est = [Estimate("brdf_filter", fit.filter, fit.filter_stderr, "band",
                     determined=fit.determined, note="A_l = Lambda_l rho_l (R&H 2001 eq. 12)")]
     if fit.kd is not None:
@@ -119,6 +119,11 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     est = _parametric_estimates(par) + [est[0]]
     return FitResult("brdf", est, par.prediction, rec, summary=summ, warnings=warns,
                      bands={"brdf": fit.bands})
+
+
+def _band(l) -> str:
+    """Return a band in words for the notes (``None``: every band up to the fitted one)."""
+    return "none up to lmax" if l is None else f"l = {l}"
 
 
 def _parametric_estimates(f) -> list[Estimate]:

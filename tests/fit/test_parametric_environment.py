@@ -177,6 +177,7 @@ def test_parametric_brdf_under_known_lighting_recovers_the_simulated_material(
     assert "BRDF (beckmann)" in res.output and "BRDF, SH-domain filter" in res.output
     notes = " ".join(r["fit_notes"])
     assert "beckmann fit" in notes and "Measured, no model" in notes
+    assert "band l = 3 measured, l = 3 predicted" in notes and "None" not in notes
     # the report's truth comparison (simulated capture) sees the same parameters
     z = [v for row in r["ground_truth"]["brdf"] for v in row["z"]]
     assert len(z) == 7 and max(abs(v) for v in z) < 4
