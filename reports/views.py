@@ -514,10 +514,10 @@ def truth_rows(gt: dict, results: dict) -> dict:
                 + [c for a, e, t, z in zip(ev, sv, tv, zv)
                    for c in (fmt_pm(a, math.inf if e is None else e), fmt_num(t, 4),
                              fmt_num(z, 2))])
+    zs = [abs(z) for b in gt.get("brdf") or [] for z in b["z"] if z is not None]
+    if zs:  # the largest over every parameter and channel, not the first parameter's
+        rows["headline"] = "BRDF parameters within " + fmt_num(max(zs), 2) + " std. errors"
     for b in gt.get("brdf") or []:
-        zs = [abs(z) for z in b["z"] if z is not None]
-        if zs and not rows["headline"]:
-            rows["headline"] = "BRDF parameters within " + fmt_num(max(zs), 2) + " std. errors"
         rows["brdf"].append([b["parameter"],
                              fmt_rgb_pm(b["recovered"], b["stderr"]), fmt_rgb(b["true"], 4),
                              fmt_rgb(b["z"], 2)])

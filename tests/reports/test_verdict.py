@@ -64,3 +64,16 @@ def test_the_lmax_suggestion_names_the_bounded_bands_above_it():
     assert "bound" not in lmax_suggestion(res)
     res["lighting"]["suggested_lmax"] = 12
     assert lmax_suggestion(res) is None
+
+
+def test_the_truth_headline_is_the_largest_z_of_every_brdf_parameter():
+    """"BRDF parameters within X std. errors" took the first parameter's z only (the demo
+    report said 1.3 where f0 was 1.5 off).
+    """
+    from brdfcap.reports.views import truth_rows
+
+    gt = {"brdf": [{"parameter": "kd", "recovered": [0.3] * 3, "stderr": [1e-4] * 3,
+                    "true": [0.3] * 3, "z": [1.3, 0.8, 0.0]},
+                   {"parameter": "f0", "recovered": [0.5] * 3, "stderr": [1e-4] * 3,
+                    "true": [0.5] * 3, "z": [-0.85, -1.5, None]}]}
+    assert truth_rows(gt, {})["headline"] == "BRDF parameters within 1.5 std. errors"
