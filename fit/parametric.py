@@ -218,6 +218,8 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
         theta = torch.tensor(0.0, dtype=f64)
     else:
         lo, hi = bounds or proto.shape_bounds
+        if bounds is not None:  # a narrow range given (a second solve) needs fewer points
+            grid_points = min(grid_points, max(5, math.ceil(math.log(hi / lo) / GRID_STEP)))
         grid = torch.linspace(math.log(lo), math.log(hi), grid_points, dtype=f64)
         gbasis, gb, gw = coarse or (basis, b, w)
         cost = [(_scales(*gbasis(math.exp(float(t))), gb, gw)[1]) for t in grid]
@@ -281,6 +283,9 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
                          checks=chk, prediction=pred)
 
 
+#: Spacing in ``log θ`` of the bracketing grid over a range given as ``bounds`` (at least 5
+#: points): a second solve searches a factor ``e`` either side of the first in 8 points.
+GRID_STEP = 0.25
 #: The grid that brackets the shape uses at most this many samples (evenly strided); the bounded
 #: Brent search then uses them all.
 COARSE_SAMPLES = 8000

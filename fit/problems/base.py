@@ -49,6 +49,10 @@ class FitOptions:
     rule: str = "gcv"
     brdf_lmax: int = 8
     design: str = "exact"
+    #: a first solve's estimates (``{name: value}``), given to a second solve of the same
+    #: problem (:func:`brdfcap.fit.problems.solve_problem`'s reweighting) to start its search
+    #: there; ``None`` for a first solve
+    start: dict | None = None
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import torch
 
 from brdfcap.core.errors import FitError
 
-from ..brdf import as_brdf_model
+from ..brdf import as_brdf_model, get_brdf_model
 from ..brdf_models import diffuse_filter, render_directional
 from ..conditioning import residual_adequacy
 from ..inverse_brdf import fit_brdf_sh
@@ -45,7 +45,8 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
                        "reflects them into no pixel); use --brdf phong or microfacet",
                        known.source)
     f = fit_brdf_parametric(samples.normal, samples.wo, samples.wi, samples.light_radiance,
-                            samples.radiance, samples.variance, model=model)
+                            samples.radiance, samples.variance, model=model,
+                            bounds=_search_bounds(model, opts))
     pred = render_directional(f.spec, samples.normal, samples.wo, samples.wi,
                               samples.light_radiance)
     rec = {"brdf": {"model": model, "parameters": f.spec.parameters(),
@@ -99,7 +100,8 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     # equation under the known lighting; the radial filter above stays as the measurement
     # that assumes no model (issue 12: "always show the measured rho_l")
     par = fit_brdf_parametric_sh(samples.normal, samples.wo, samples.radiance, light,
-                                 samples.variance, model=model)
+                                 samples.variance, model=model,
+                                 bounds=_search_bounds(model, opts))
     warns = _lighting_band_warning(par, known)
     rec = {"brdf": {"model": model, "parameters": par.spec.parameters(),
                     "stderr": {k: v.tolist() for k, v in par.stderr.items()},
@@ -119,6 +121,24 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     est = _parametric_estimates(par) + [est[0]]
     return FitResult("brdf", est, par.prediction, rec, summary=summ, warnings=warns,
                      bands={"brdf": fit.bands})
+
+
+def _search_bounds(model: str, opts: FitOptions) -> tuple[float, float] | None:
+    """Return a second solve's lobe-shape search range: a factor ``e`` about the first optimum.
+
+    ``None`` (the model's whole ``shape_bounds``) for a first solve. The second solve of the
+    noise reweighting moves the optimum by a fraction of its standard error, so the grid over
+    the whole range (``s`` from 0.5 to 1e5) need not be searched again.
+    """
+    shape = get_brdf_model(model).shape_parameter
+    v = (opts.start or {}).get(shape) if shape else None
+    if v is None:
+        return None
+    t = float(torch.as_tensor(v).reshape(-1)[0])
+    lo, hi = get_brdf_model(model).shape_bounds
+    if not (math.isfinite(t) and lo < t < hi):
+        return None
+    return max(lo, t / math.e), min(hi, t * math.e)
 
 
 def _band(l) -> str:
