@@ -53,14 +53,15 @@ from scipy.special import roots_legendre
 
 from .brdf.base import BRDFModel, orthonormal_basis
 from .filters import lambertian_filter
-from .rotation import zyz_angles, zyz_rotator
-from .sh import real_sh
+from .rotation import rotate_sh_zyz, zyz_angles, zyz_rotator
+from .sh import band_of_index, real_sh
 
 __all__ = ["ExactRows", "LocalLighting", "kernel_power", "exact_rows", "horizon_clamped",
            "exact_rows_direct",
            "exact_rows_rotated", "TABLE_ANGLES", "lobe_extent", "lobe_bandwidth", "node_counts",
            "exact_design_applies", "DESIGNS", "LOBE_TOL", "LOBE_MARGIN", "FILTER_TOL",
            "CONVERGENCE_TOL", "CHUNK_BYTES", "rule_extent", "rule_nodes", "exitance_grid",
+           "lagrange4_rows",
            "lagrange4"]
 
 #: The lighting problem's specular designs: ``exact`` (this module) and ``rh`` (R&H 2001's form).
@@ -227,6 +228,15 @@ def lagrange4(gam: torch.Tensor, gmax: float, angles: int) -> tuple[torch.Tensor
     return i0, wts
 
 
+def lagrange4_rows(table: torch.Tensor, i0: torch.Tensor, wts: torch.Tensor) -> torch.Tensor:
+    """Interpolate a table over the exitance grid at each sample: ``Σ_t wts[:, t] table[i0 + t]``.
+
+    ``table`` ``(G, ...)``, ``(i0, wts)`` from :func:`lagrange4`; returns ``(N, ...)``.
+    """
+    taps = table[i0[:, None] + torch.arange(4, device=i0.device)]  # (N, 4, ...)
+    return torch.einsum("nt,nt...->n...", wts, taps)
+
+
 def rule_nodes(normal: torch.Tensor, r: torch.Tensor, theta_lobe: float, nt: int, nphi: int,
                clip: bool = True, mirror: bool = False):
     """Directions ``(P, M, 3)`` and weights ``(P, M)`` of the rule for each sample (module doc).
@@ -289,13 +299,12 @@ def exact_rows(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor, 
     :data:`ROTATE_ABOVE` × :data:`TABLE_ANGLES` samples. Arguments and returns as
     :func:`exact_rows_direct`.
     """
-    kw = {} if shape is None else {"shape": shape}
     if method not in ("auto", "direct", "rotated"):
         raise ValueError(f"unknown method {method!r}; valid: auto, direct, rotated")
     if method == "rotated" or (method == "auto"
                                and normal.shape[0] > ROTATE_ABOVE * TABLE_ANGLES):
-        return exact_rows_rotated(model, normal, reflected, lmax, refine, **kw)
-    return exact_rows_direct(model, normal, reflected, lmax, refine, **kw)
+        return exact_rows_rotated(model, normal, reflected, lmax, refine, shape=shape)
+    return exact_rows_direct(model, normal, reflected, lmax, refine, shape=shape)
 
 
 def exact_rows_direct(model: BRDFModel, normal: torch.Tensor, reflected: torch.Tensor,
@@ -495,10 +504,10 @@ def kernel_power(spec, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
     ``k_{c,p}(ω) = kd_c max(n·ω, 0)/π + f_c(n, ω, ωo) max(n·ω, 0)`` is what sample ``p`` of
     channel ``c`` integrates against the lighting (R&H 2001 eq. 1); its SH coefficients are the
     row of the exact design, so ``∫ k² − Σ_{l≤L} ‖D_{p,l}‖²`` is the kernel's power above the
-    internal band (:func:`truncation_power`). The diffuse square is ``2 kd²/(3π)`` exactly; the
-    specular square and the cross term by the exact design's own rule
-    (:mod:`brdfcap.fit.exact_design`, nodes for twice the lobe's bandwidth: ``k²`` carries it)
-    on a canonical sample per exitance angle ``γ`` (``n = z``; an isotropic kernel's ``∫ k²``
+    internal band (:func:`brdfcap.fit.inverse_lighting.truncation_power`). The diffuse square
+    is ``2 kd²/(3π)`` exactly; the specular square and the cross term by the exact design's own
+    rule (:mod:`brdfcap.fit.exact_design`, nodes for twice the lobe's bandwidth: ``k²`` carries
+    it) on a canonical sample per exitance angle ``γ`` (``n = z``; an isotropic kernel's ``∫ k²``
     depends on ``γ`` alone), ``angles`` uniform ``γ`` interpolated per sample by 4-point
     Lagrange, as the rotated rows are.
     """
@@ -527,8 +536,7 @@ def kernel_power(spec, normal: torch.Tensor, reflected: torch.Tensor, lmax: int,
             + 2.0 * kd / math.pi * torch.einsum("pm,pmc->pc", w * cos, f)
     if angles < 4:
         return table[torch.zeros_like(gam, dtype=torch.long)]
-    i0, wts = lagrange4(gam, gmax, angles)
-    return (table[i0[:, None] + torch.arange(4, device=i0.device)] * wts[..., None]).sum(1)
+    return lagrange4_rows(table, *lagrange4(gam, gmax, angles))
 
 
 class LocalLighting:
@@ -547,8 +555,6 @@ class LocalLighting:
 
     def __init__(self, normal: torch.Tensor, reflected: torch.Tensor, light_sh: torch.Tensor,
                  angles: int = TABLE_ANGLES, chunk: int = 4096):
-        from .rotation import rotate_sh_zyz
-
         light = light_sh.to(device=normal.device, dtype=torch.float64)
         self.lmax = int(math.isqrt(light.shape[0])) - 1
         if light.ndim != 2 or (self.lmax + 1) ** 2 != light.shape[0]:
@@ -578,7 +584,6 @@ class LocalLighting:
                                    shape=shape)
         if ta.ndim != 2:
             raise ValueError(f"LocalLighting: {model.name}'s transfer is not affine in one scale")
-        taps = torch.arange(4, device=self.gam.device)
         out = []
         for tab in (ta, tq):
             if tab is None:
@@ -588,12 +593,10 @@ class LocalLighting:
             res = self.local.new_empty(self.local.shape[:2])
             for s in range(0, res.shape[0], chunk):
                 e = min(s + chunk, res.shape[0])
-                rows = torch.einsum("nt,ntk->nk", self.wts[s:e],
-                                    tab[self.i0[s:e, None] + taps])
+                rows = lagrange4_rows(tab, self.i0[s:e], self.wts[s:e])
                 res[s:e] = torch.einsum("nk,nck->nc", rows, self.local[s:e])
             out.append(res)
         return out[0], out[1]
-
 
     def power_within(self, model: BRDFModel, kd: torch.Tensor,
                      refine: float = 1.0) -> torch.Tensor:
@@ -611,16 +614,14 @@ class LocalLighting:
             raise ValueError(f"LocalLighting: {model.name}'s transfer is not affine in one scale")
         k = self.lmax
         z = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64, device=ta.device)
-        band = torch.repeat_interleave(torch.arange(k + 1), 2 * torch.arange(k + 1) + 1)
-        d = (lambertian_filter(k).to(ta.device)[band.to(ta.device)] / math.pi) * real_sh(z, k)[0]
+        band = band_of_index(k).to(ta.device)
+        d = (lambertian_filter(k).to(ta.device)[band] / math.pi) * real_sh(z, k)[0]
         kd = torch.as_tensor(kd, dtype=torch.float64, device=ta.device).reshape(-1)
         scale = model.specular_scale.to(dtype=torch.float64, device=ta.device).reshape(-1)
         rows = kd[None, :, None] * d[None, None, :] + scale[None, :, None] * ta[:, None, :]
         if tq is not None:
             rows = rows + tq[:, None, :]
-        table = (rows ** 2).sum(-1)  # (G, C)
-        taps = torch.arange(4, device=ta.device)
-        return (table[self.i0[:, None] + taps] * self.wts[..., None]).sum(1)
+        return lagrange4_rows((rows ** 2).sum(-1), self.i0, self.wts)  # table (G, C)
 
 
 def _key(model: BRDFModel, normal: torch.Tensor, r: torch.Tensor, refine: float) -> str:

@@ -459,8 +459,8 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
     if fit.variance is None and vf is not None:
         fit.variance = vf
     if subset is not None:  # the prediction (and variance) of every sample, chunk by chunk
-        fit.prediction, fit.variance = _predict_all(fit, proto, n, r, diffuse, var, L, k,
-                                                    tau2, chunk=max(1024, budget // per))
+        fit.prediction, fit.variance = _predict_all(fit, proto, basis_of, n, r, diffuse, var, L,
+                                                    k, tau2, chunk=max(1024, budget // per))
     fit.extra = extra
     return fit
 
@@ -473,26 +473,27 @@ LOCAL_LIGHTING_MEMORY = 0.25
 MIN_FIT_SAMPLES = 2000
 
 
-def _predict_all(fit: ParametricFit, proto: BRDFModel, n, r, diffuse, var, L, k: int,
-                 tau2, chunk: int):
-    """Prediction ``(N, C)`` (and variance, with the truncation term) for every sample."""
-    spec = fit.spec
-    model = spec.brdf
-    x0 = fit.values["kd"]
-    scale = fit.values.get(proto.scale_parameter) if proto.scale_parameter else None
+def _predict_all(fit: ParametricFit, proto: BRDFModel, basis_of, n, r, diffuse, var, L,
+                 k: int, tau2, chunk: int):
+    """Prediction ``(N, C)`` (and variance, with the truncation term) for every sample.
+
+    ``basis_of(lighting, diffuse)`` is the fit's own forward model (columns of the scales and
+    offset at a shape), evaluated chunk by chunk at the fitted shape and scales.
+    """
+    shape = proto.shape_parameter
+    theta = float(fit.values[shape]) if shape else 0.0
+    lin = ["kd"] + ([proto.scale_parameter] if shape else [])
+    x = torch.stack([fit.values[name] for name in lin])  # (J, C), the basis's column order
     pred = torch.empty_like(diffuse)
     var_all = None if var is None else var.clone()
     for s in range(0, n.shape[0], chunk):
         e = min(s + chunk, n.shape[0])
-        p = diffuse[s:e] * x0
-        if proto.shape_parameter is not None:
-            ll = LocalLighting(n[s:e], r[s:e], L)
-            a, q = ll.radiance(model)
-            p = p + a * scale + (0.0 if q is None else q)
-            if tau2 is not None and var_all is not None:
-                var_all[s:e] = var[s:e] + tau2[None, :] * _power_above(spec, n[s:e], r[s:e], k,
-                                                                       ll)
-        pred[s:e] = p
+        ll = LocalLighting(n[s:e], r[s:e], L) if shape else None
+        cols, off = basis_of(ll, diffuse[s:e])(theta)
+        pred[s:e] = torch.einsum("ncj,jc->nc", cols, x) + off
+        if tau2 is not None and var_all is not None:
+            var_all[s:e] = var[s:e] + tau2[None, :] * _power_above(fit.spec, n[s:e], r[s:e], k,
+                                                                   ll)
     return pred, var_all
 
 
