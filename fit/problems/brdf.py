@@ -49,13 +49,8 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
                             bounds=_search_bounds(model, opts))
     pred = render_directional(f.spec, samples.normal, samples.wo, samples.wi,
                               samples.light_radiance)
-    rec = {"brdf": {"model": model, "parameters": f.spec.parameters(),
-                    "stderr": {k: v.tolist() for k, v in f.stderr.items()},
-                    "chi2_reduced": f.chi2_reduced, "checks": f.checks,
-                    "source": "fitted under known distant lights", "parametric": f.to_json()}}
-    summ = [f"Problem 2 (inverse BRDF, known distant lights): {model} fit "
-            + ", ".join(f"{k} = {fmt(v)} ± {fmt(f.stderr[k])}"
-                        for k, v in f.values.items()) + "."]
+    rec = {"brdf": _parametric_record(f, model, "fitted under known distant lights")}
+    summ = [f"Problem 2 (inverse BRDF, known distant lights): {_fitted_words(f, model)}."]
     return FitResult("brdf", _parametric_estimates(f), pred, rec, summary=summ)
 
 
@@ -103,19 +98,14 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                                  samples.variance, model=model,
                                  bounds=_search_bounds(model, opts))
     warns = _lighting_band_warning(par, known)
-    rec = {"brdf": {"model": model, "parameters": par.spec.parameters(),
-                    "stderr": {k: v.tolist() for k, v in par.stderr.items()},
-                    "chi2_reduced": par.chi2_reduced, "checks": par.checks,
-                    "source": "fitted under known SH lighting, exact reflection equation",
-                    "parametric": par.to_json(), "sh": sh_json},
+    rec = {"brdf": {**_parametric_record(par, model, "fitted under known SH lighting, exact "
+                                                     "reflection equation"), "sh": sh_json},
            "conditioning": rec["conditioning"]}
     if par.variance is not None:  # judged on the variance the fit weighted by
         rec["adequacy"] = residual_adequacy(samples.radiance, par.prediction, par.variance,
                                             view=samples.view, n_params=len(par.names))
     summ = [f"Problem 2 (inverse BRDF, known SH lighting to l = {par.extra['lighting_lmax']}): "
-            f"{model} fit " + ", ".join(f"{k} = {fmt(v)} ± {fmt(par.stderr[k])}"
-                                        for k, v in par.values.items())
-            + " (exact reflection equation)."] + \
+            f"{_fitted_words(par, model)} (exact reflection equation)."] + \
         [s.replace("Problem 2 (inverse BRDF, known SH lighting): ", "Measured, no model: ")
          for s in summ]
     est = _parametric_estimates(par) + [est[0]]
@@ -144,6 +134,20 @@ def _search_bounds(model: str, opts: FitOptions) -> tuple[float, float] | None:
 def _band(l) -> str:
     """Return a band in words for the notes (``None``: every band up to the fitted one)."""
     return "none up to lmax" if l is None else f"l = {l}"
+
+
+def _parametric_record(f, model: str, source: str) -> dict:
+    """Return the ``brdf`` block of ``results.json`` for a parametric fit."""
+    return {"model": model, "parameters": f.spec.parameters(),
+            "stderr": {k: v.tolist() for k, v in f.stderr.items()},
+            "chi2_reduced": f.chi2_reduced, "checks": f.checks, "source": source,
+            "parametric": f.to_json()}
+
+
+def _fitted_words(f, model: str) -> str:
+    """Return ``"phong fit kd = … ± …, ks = …"`` for the notes."""
+    return f"{model} fit " + ", ".join(f"{k} = {fmt(v)} ± {fmt(f.stderr[k])}"
+                                       for k, v in f.values.items())
 
 
 def _parametric_estimates(f) -> list[Estimate]:
