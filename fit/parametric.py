@@ -97,6 +97,10 @@ class ParametricFit:
     #: ``(N, C)`` the variance the final fit weighted by (the noise model's, plus a truncation
     #: term under a lighting known to a finite band), or ``None`` without a noise model
     variance: torch.Tensor | None = None
+    #: ``(N, C, P)`` the prediction's derivative in the flat parameters at the optimum and the
+    #: ``(N, C)`` weights of the final solve (not written to results)
+    jacobian: torch.Tensor | None = field(default=None, repr=False)
+    weights: torch.Tensor | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -280,7 +284,7 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
     pred = torch.einsum("ncj,jc->nc", cols, x) + off
     return ParametricFit(model=model, spec=spec, values=values, stderr=stderr, names=names,
                          covariance=cov, chi2_reduced=chi2, n_samples=nuse, noise_source=src,
-                         checks=chk, prediction=pred)
+                         checks=chk, prediction=pred, jacobian=jac, weights=w)
 
 
 #: Spacing in ``log θ`` of the bracketing grid over a range given as ``bounds`` (at least 5
@@ -433,29 +437,58 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
     tau2 = None
     if vf is not None and proto.shape_parameter is not None:
         # the lighting above K, unknown to the model, as noise (docs/fitting.md, "Parametric
-        # BRDF under known lighting"): variance tau_c^2 t_pc, t the kernel's power above K
-        t = _power_above(fit.spec, nf, rf, k, lighting)
-        tau2, gain = _truncation_scale(bf - fit.prediction, vf, t, wf > 0)
-        extra["truncation"] = {"tau2": tau2.tolist(), "log_likelihood_gain": gain.tolist(),
-                               "applied": bool((tau2 > 0).any())}
-        if bool((tau2 > 0).any()):
-            var2 = vf + tau2[None, :] * t
+        # BRDF under known lighting"): variance tau_c^2 t_pc, t the kernel's power above K.
+        # tau^2 is estimated from a fit's residual and the fit repeated with it until tau^2
+        # settles: the first fit, weighted by the pixel noise alone, bends its parameters
+        # towards the cut lobes and leaves misfit on the others that inflates tau^2 (Grace,
+        # K = 8: 103 from the first fit, 1.2 from the refit's residual)
+        nused = int((wf > 0).any(-1).sum())
+        # a non-negative lighting carries at most L00^2 per coefficient in any band
+        # (sum_m L_lm^2 = (2l+1)/(4 pi) \iint L L' P_l(w.w') <= (2l+1) L00^2 as |P_l| <= 1):
+        # a larger tau^2 is misfit no lighting above K can leave (a wrong model)
+        bound = torch.where(L[0] > 0, L[0] ** 2, torch.full_like(L[0], math.inf)).cpu()
+        rounds = []
+        used_tau2 = torch.zeros(b.shape[1], dtype=torch.float64)
+        for _ in range(TRUNCATION_ROUNDS + 1):
+            t = _power_above(fit.spec, nf, rf, k, lighting)
+            est, gain, raw = _truncation_scale(bf - fit.prediction, vf, t, wf > 0, bound)
+            rounds.append([round(float(x), 6) for x in est.tolist()])
+            if len(rounds) > 1 and _settled(est, used_tau2):
+                break
+            if len(rounds) == TRUNCATION_ROUNDS + 1 or (len(rounds) == 1 and not (est > 0).any()):
+                break
+            used_tau2 = est
+            var2 = vf + used_tau2[None, :] * t
             w2 = noise_weights(bf, var2)[0] * (wf > 0)
-            dom = int(((tau2[None, :] * t > vf) & (wf > 0)).any(-1).sum())
-            src2 = (f"{src}; plus the lighting above l = {k} (the known lighting's last band) "
-                    f"as noise, tau^2 t_p with t_p each sample's kernel power above l = {k} and "
-                    f"tau^2 = {', '.join(f'{x:.3g}' for x in tau2.tolist())} by maximum "
-                    f"likelihood from the residual: {dom} of {int((wf > 0).any(-1).sum())} "
-                    f"samples (the lobes the horizon cuts) have it above their pixel noise")
+            dom = int(((used_tau2[None, :] * t > vf) & (wf > 0)).any(-1).sum())
+            if (used_tau2 > 0).any():
+                src2 = (f"{src}; plus the lighting above l = {k} (the known lighting's last "
+                        f"band) as noise, tau^2 t_p with t_p each sample's kernel power above "
+                        f"l = {k} and tau^2 = {', '.join(f'{x:.3g}' for x in used_tau2.tolist())}"
+                        f" by maximum likelihood from the residual (refitted until it settles): "
+                        f"{dom} of {nused} samples (the lobes the horizon cuts) have it above "
+                        f"their pixel noise")
+            else:
+                src2 = src
             th = float(fit.values[proto.shape_parameter])
             coarse2 = None if coarse is None else (coarse[0], coarse[1], w2[idx])
             fit = _variable_projection(model, proto, basis, shape_derivative, bf, w2, True,
                                        src2, (th / math.e, th * math.e), checks,
                                        coarse=coarse2, xatol=1e-7, grid_points=9)
             fit.variance = var2
+        applied = bool((used_tau2 > 0).any())
+        over = (raw > bound) & (raw > 0)
+        extra["truncation"] = {"tau2": used_tau2.tolist(), "log_likelihood_gain": gain.tolist(),
+                               "applied": applied, "tau2_rounds": rounds,
+                               "bound": [float(x) if math.isfinite(x) else None
+                                         for x in bound.tolist()],
+                               "exceeds_bound": over.tolist(),
+                               "tau2_unbounded": raw.tolist(),
+                               "settled": len(rounds) == 1 or _settled(
+                                   torch.tensor(rounds[-1], dtype=torch.float64), used_tau2)}
+        if applied:
             extra["truncation"]["samples_above_noise"] = dom
-        else:
-            tau2 = None
+            tau2 = used_tau2
     if fit.variance is None and vf is not None:
         fit.variance = vf
     if subset is not None:  # the prediction (and variance) of every sample, chunk by chunk
@@ -497,6 +530,21 @@ def _predict_all(fit: ParametricFit, proto: BRDFModel, basis_of, n, r, diffuse, 
     return pred, var_all
 
 
+#: At most this many refits with a re-estimated truncation variance (the first fit's residual
+#: overstates it; each refit's residual gives the next estimate).
+TRUNCATION_ROUNDS = 4
+#: The truncation variance has settled when every channel's new estimate is within this factor
+#: of the one the last fit used (or both are 0).
+TRUNCATION_SETTLED = 1.25
+
+
+def _settled(new: torch.Tensor, old: torch.Tensor) -> bool:
+    """Whether every channel's ``τ²`` estimate is within :data:`TRUNCATION_SETTLED` of the old."""
+    both0 = (new <= 0) & (old <= 0)
+    ratio = (new.clamp_min(1e-300) / old.clamp_min(1e-300)).log().abs()
+    return bool((both0 | (ratio <= math.log(TRUNCATION_SETTLED))).all())
+
+
 #: A truncation variance is added only where it raises the log-likelihood of the residual by at
 #: least this much per channel (about a 3 sigma likelihood-ratio test on one parameter).
 TRUNCATION_MIN_GAIN = 4.5
@@ -509,16 +557,20 @@ def _power_above(spec: BRDFSpec, n, r, k: int, lighting: LocalLighting) -> torch
     return (total - within).clamp_min(0.0)
 
 
-def _truncation_scale(res, var, t, used) -> tuple[torch.Tensor, torch.Tensor]:
-    """Return per channel ``τ² ≥ 0`` and its log-likelihood gain over ``τ² = 0``.
+def _truncation_scale(res, var, t, used, bound=None
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Return per channel ``τ² ≥ 0``, its log-likelihood gain and the unbounded estimate.
 
-    ``τ²`` maximises the Gaussian likelihood of ``res`` under variance ``var + τ² t``; it is
+    The gain is over ``τ² = 0``. ``τ²`` maximises the Gaussian likelihood of ``res`` under
+    variance ``var + τ² t`` on ``[0, bound_c]`` (``bound``: ``(C,)`` or ``None``; the
+    likelihood is unimodal in ``τ²``, so the bounded maximum is the smaller of the two); it is
     set to 0 where the gain is below :data:`TRUNCATION_MIN_GAIN`.
     """
     from scipy.optimize import minimize_scalar
 
     tau2 = torch.zeros(res.shape[1], dtype=torch.float64)
     gain = torch.zeros(res.shape[1], dtype=torch.float64)
+    raw = torch.zeros(res.shape[1], dtype=torch.float64)
     for c in range(res.shape[1]):
         m = used[:, c] & (t[:, c] > 0)
         if int(m.sum()) < 3:
@@ -532,8 +584,12 @@ def _truncation_scale(res, var, t, used) -> tuple[torch.Tensor, torch.Tensor]:
         ref = float((v / tc).median())
         sol = minimize_scalar(nll, bounds=(math.log(ref) - 30.0, math.log(ref) + 10.0),
                               method="bounded", options={"xatol": 1e-3})
-        g = -float(sol.fun)
+        raw[c] = math.exp(sol.x)
+        x = float(sol.x)
+        if bound is not None and math.isfinite(float(bound[c])) and raw[c] > float(bound[c]):
+            x = math.log(max(float(bound[c]), 1e-300))
+        g = -nll(x)
         gain[c] = g
         if g >= TRUNCATION_MIN_GAIN:
-            tau2[c] = math.exp(sol.x)
-    return tau2, gain
+            tau2[c] = math.exp(x)
+    return tau2, gain, raw

@@ -104,6 +104,14 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     if par.variance is not None:  # judged on the variance the fit weighted by
         rec["adequacy"] = residual_adequacy(samples.radiance, par.prediction, par.variance,
                                             view=samples.view, n_params=len(par.names))
+        beyond = _beyond_truncation(par, model)
+        if beyond:
+            ad = rec["adequacy"]
+            ad["adequate"] = False
+            ad["likely_causes"] = [beyond] + list(ad.get("likely_causes") or [])
+            ad["verdict"] = ("the model does not explain the data (see likely_causes); this "
+                             "problem's errors are not widened for it: read them as lower "
+                             "bounds")
     summ = [f"Problem 2 (inverse BRDF, known SH lighting to l = {par.extra['lighting_lmax']}): "
             f"{_fitted_words(par, model)} (exact reflection equation)."] + \
         [s.replace("Problem 2 (inverse BRDF, known SH lighting): ", "Measured, no model: ")
@@ -111,6 +119,27 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     est = _parametric_estimates(par) + [est[0]]
     return FitResult("brdf", est, par.prediction, rec, summary=summ, warnings=warns,
                      bands={"brdf": fit.bands})
+
+
+def _beyond_truncation(par, model: str) -> str | None:
+    """Return the adequacy cause when the residual exceeds what the lighting above K can leave.
+
+    ``brdf.parametric.truncation.exceeds_bound``: the maximum-likelihood ``τ²`` of a channel is
+    above ``L00²``, the most a non-negative lighting carries per SH coefficient in any band
+    (``docs/fitting.md``, "Truncation of the known lighting").
+    """
+    tr = par.extra.get("truncation") or {}
+    over = [c for c, x in enumerate(tr.get("exceeds_bound") or []) if x]
+    if not over:
+        return None
+    raw, bound = tr["tau2_unbounded"], tr["bound"]
+    worst = max(over, key=lambda c: raw[c] / bound[c])
+    return (f"the residual is larger than the known lighting's missing bands could leave: "
+            f"channel {worst}'s truncation variance would need {raw[worst]:.3g} per SH "
+            f"coefficient above l = {par.extra['lighting_lmax']}, {raw[worst] / bound[worst]:.3g}x "
+            f"the most a non-negative lighting carries (L00^2 = {bound[worst]:.3g}): the {model} "
+            f"model does not fit these data (a wrong BRDF model, or unmodelled shadows or "
+            f"interreflections; try another --brdf)")
 
 
 def _search_bounds(model: str, opts: FitOptions) -> tuple[float, float] | None:

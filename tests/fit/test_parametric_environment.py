@@ -113,10 +113,17 @@ def test_truncation_scale_is_found_where_it_is_and_not_where_it_is_not():
     t = torch.rand(n, 2, generator=g, dtype=torch.float64) ** 4 * 0.05
     tau2 = torch.tensor([0.02, 0.0], dtype=torch.float64)
     res = torch.randn(n, 2, generator=g, dtype=torch.float64) * (var + tau2 * t).sqrt()
-    got, gain = _truncation_scale(res, var, t, torch.ones(n, 2, dtype=torch.bool))
+    used = torch.ones(n, 2, dtype=torch.bool)
+    got, gain, raw = _truncation_scale(res, var, t, used)
     assert float(got[0]) == pytest.approx(0.02, rel=0.15)
     assert float(gain[0]) > 100 * TRUNCATION_MIN_GAIN
     assert float(got[1]) == 0.0 and float(gain[1]) < TRUNCATION_MIN_GAIN
+    # bounded (L00^2 in the fit): the likelihood's maximum on [0, bound] is the bound when the
+    # free maximum lies above it, and the free estimate is still returned
+    capped, gain_c, raw_c = _truncation_scale(res, var, t, used,
+                                              torch.tensor([0.005, math.inf]))
+    assert float(capped[0]) == pytest.approx(0.005) and float(raw_c[0]) == float(raw[0])
+    assert float(gain_c[0]) < float(gain[0])
 
 
 def test_a_probe_cut_below_the_lobes_bands_is_said():
@@ -170,6 +177,7 @@ def test_parametric_brdf_under_known_lighting_recovers_the_simulated_material(
         assert np.all(np.abs(got - tv) < 0.01 * tv), (name, got)
     assert r["adequacy"]["adequate"], r["adequacy"]
     assert b["parametric"]["truncation"]["applied"] is False
+    assert not any(b["parametric"]["truncation"]["exceeds_bound"])
     assert b["parametric"]["lighting_lmax"] == 2
     assert b["sh"]["kind"] == "sh-radial" and len(b["sh"]["filter"]) == 9
     rows = {x["quantity"] for x in csv.DictReader((out / "coefficients.csv").open())}
@@ -188,6 +196,41 @@ def test_parametric_brdf_under_known_lighting_recovers_the_simulated_material(
     table = page[i: page.find("</table>", i)]
     assert table.count("<tr>") == 1 + 9 and table.count("±") >= 3 * 3
     assert "not measured: the lighting has no energy in this band" in table
+
+
+def test_a_wrong_model_is_told_apart_from_truncation(tmp_path):
+    """A Phong fit to a Beckmann sphere: its residual is larger than any lighting above the known
+    band could leave (a truncation variance above L00², the most a non-negative lighting carries
+    per coefficient), so the truncation term is held at that bound, χ² shows the excess and the
+    adequacy names the wrong model first. The lighting is a blurred sun to l = 12, known to 12
+    (nothing above it); the reference renderer integrates it, not the fit's forward model.
+    """
+    lm = 12
+    sun = torch.nn.functional.normalize(torch.tensor([[0.4, 0.3, 0.85]], dtype=torch.float64),
+                                        dim=-1)
+    band = band_of_index(lm).double()
+    coef = (real_sh(sun, lm)[0] * torch.exp(-band * (band + 1) / 150.0))[:, None] \
+        * torch.tensor([3.0, 2.7, 2.4], dtype=torch.float64)
+    coef[0] += torch.tensor([0.5, 0.6, 0.8], dtype=torch.float64) * math.sqrt(math.pi) * 0.6
+    light = 'kind = "environment"\nknown = true\ncoefficients = ' + json.dumps(coef.tolist())
+    (tmp_path / "s.toml").write_text(scene_text(
+        name="beckmann sphere under a sun", width=40, views=2, material=BECKMANN,
+        lighting=light, noise=NOISE, tail="[render]\nspp = 1\nrel_tol = 1e-3\n"))
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    out = tmp_path / "o"
+    res = CliRunner().invoke(main, ["run", str(cap), "--out", str(out), "--problem", "brdf",
+                                    "--brdf", "phong"])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "results.json").read_text())
+    tr = r["brdf"]["parametric"]["truncation"]
+    bound = np.asarray(tr["bound"])
+    assert bound == pytest.approx(coef[0].numpy() ** 2)
+    assert all(tr["exceeds_bound"]) and np.all(np.asarray(tr["tau2_unbounded"]) > bound)
+    assert np.asarray(tr["tau2"]) == pytest.approx(bound)
+    ad = r["adequacy"]
+    assert not ad["adequate"] and max(ad["chi2_reduced"]) > 2
+    assert "missing bands could leave" in ad["likely_causes"][0]
+    assert "phong model does not fit" in ad["likely_causes"][0]
 
 
 def test_a_model_without_a_parametric_form_is_refused_in_one_line(beckmann_capture, tmp_path):
