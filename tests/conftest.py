@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
 import pytest
+import torch
 from brdfcap.capture.simulate import simulate
 
 from brdfcap.testing import make_tiny_capture, reference_dir, scene_text
+
+# pytest-xdist (``-n N``): the cores are shared between the workers, so each torch gets its
+# share of the threads (OpenMP threads beyond the cores spin against each other)
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(max(1, (os.cpu_count() or 1)
+                              // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))))
 
 REPO = Path(__file__).resolve().parents[1]
 REFERENCE = reference_dir(REPO)

@@ -52,6 +52,10 @@ def phong_reference_samples():
             "radiance": b, "rel_tol": rel_tol}
 
 
+#: ``matrix_cell``'s fits of this test process, by (brdf, views, lmax, probe)
+_CELL_FITS: dict = {}
+
+
 @pytest.fixture
 def matrix_cell(request, tmp_path_factory):
     """``fit(brdf, views, lmax, probe="grace")``: the done-when matrix's first repetition of one
@@ -68,9 +72,12 @@ def matrix_cell(request, tmp_path_factory):
         tmp_path_factory.mktemp("truth_matrix")
 
     def fit(brdf: str, views: int, lmax: int, probe: str = "grace"):
-        data = rendered(PROBES / f"{probe}.hdr", brdf, views=6, px=32, cache=cache)
-        n, r, v, bn, var = next(cell_repetitions(data, views, lmax, 1))
-        out = il.fit_lighting(n, bn, lmax, BRDFS[brdf], reflected=r, variance=var, view=v)
-        return out, project_envmap(data["probe"], lmax, quadrature="pixel")
+        key = (brdf, views, lmax, probe)
+        if key not in _CELL_FITS:  # tests that read the same cell share one fit (read only)
+            data = rendered(PROBES / f"{probe}.hdr", brdf, views=6, px=32, cache=cache)
+            n, r, v, bn, var = next(cell_repetitions(data, views, lmax, 1))
+            out = il.fit_lighting(n, bn, lmax, BRDFS[brdf], reflected=r, variance=var, view=v)
+            _CELL_FITS[key] = (out, project_envmap(data["probe"], lmax, quadrature="pixel"))
+        return _CELL_FITS[key]
 
     return fit
