@@ -120,6 +120,7 @@ def test_noise_beyond_the_model_is_not_called_adequate():
 
 
 @needs_probes
+@pytest.mark.xdist_group("grace-phong256-1view-lmax8")  # one fit, one worker
 @pytest.mark.usefixtures("one_thread")
 def test_grace_phong256_one_view_is_determined_and_calibrated(matrix_cell):
     """Grace, Phong s = 256, one view, lmax 8 (~40 s). Session 8 (stationary prior): nothing

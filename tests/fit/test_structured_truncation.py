@@ -73,6 +73,7 @@ def test_omitted_lmax_follows_the_filter():
 
 
 @needs_probes
+@pytest.mark.xdist_group("grace-phong256-1view-lmax8")  # one fit, one worker
 @pytest.mark.usefixtures("one_thread")
 def test_grace_phong256_one_view_structured_estimate(matrix_cell):
     """Grace, Phong s = 256, one view, lmax 8 (truncation dominates all 812 samples, ~40 s).
