@@ -209,9 +209,15 @@ def test_a_wrong_model_is_told_apart_from_truncation(tmp_path):
     sun = torch.nn.functional.normalize(torch.tensor([[0.4, 0.3, 0.85]], dtype=torch.float64),
                                         dim=-1)
     band = band_of_index(lm).double()
-    coef = (real_sh(sun, lm)[0] * torch.exp(-band * (band + 1) / 150.0))[:, None] \
+    # a heat-kernel blur tapered to 0 past l = 12 (cos^2), on a sky: non-negative everywhere,
+    # as the bound assumes (the untapered blur rings to -1.5 in R)
+    taper = torch.exp(-band * (band + 1) / 150.0) * torch.cos(math.pi * band / (2 * lm + 2)) ** 2
+    coef = (real_sh(sun, lm)[0] * taper)[:, None] \
         * torch.tensor([3.0, 2.7, 2.4], dtype=torch.float64)
-    coef[0] += torch.tensor([0.5, 0.6, 0.8], dtype=torch.float64) * math.sqrt(math.pi) * 0.6
+    coef[0] += torch.tensor([0.5, 0.6, 0.8], dtype=torch.float64) * math.sqrt(math.pi) * 0.38
+    grid = torch.nn.functional.normalize(torch.randn(20000, 3, generator=torch.Generator()
+                                                     .manual_seed(0), dtype=torch.float64), dim=-1)
+    assert float((real_sh(grid, lm) @ coef).min()) > 0
     light = 'kind = "environment"\nknown = true\ncoefficients = ' + json.dumps(coef.tolist())
     (tmp_path / "s.toml").write_text(scene_text(
         name="beckmann sphere under a sun", width=40, views=2, material=BECKMANN,
@@ -225,8 +231,10 @@ def test_a_wrong_model_is_told_apart_from_truncation(tmp_path):
     tr = r["brdf"]["parametric"]["truncation"]
     bound = np.asarray(tr["bound"])
     assert bound == pytest.approx(coef[0].numpy() ** 2)
-    assert all(tr["exceeds_bound"]) and np.all(np.asarray(tr["tau2_unbounded"]) > bound)
-    assert np.asarray(tr["tau2"]) == pytest.approx(bound)
+    over = np.asarray(tr["exceeds_bound"])
+    assert over.sum() >= 2, tr  # measured: R 1.9 and G 2.1 against 1.4; B at its bound
+    assert np.all(np.asarray(tr["tau2_unbounded"])[over] > bound[over])
+    assert np.asarray(tr["tau2"])[over] == pytest.approx(bound[over])
     ad = r["adequacy"]
     assert not ad["adequate"] and max(ad["chi2_reduced"]) > 2
     assert "missing bands could leave" in ad["likely_causes"][0]
