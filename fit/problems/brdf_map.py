@@ -60,4 +60,4 @@ def problem_brdf_map(samples, known: Known, opts: FitOptions) -> FitResult:
 register_problem(Problem(
     "brdf-map", problem_brdf_map,
     "per-pixel Lambertian albedo map, global Phong lobe and SH-domain rho_l under known "
-    "distant lights (normal-map captures, docs/diligent.md)"))
+    "distant lights (normal-map captures, docs/diligent.md)", reweight=True))
