@@ -26,7 +26,7 @@ from brdfcap.capture.colour_reference import (
     shared_albedo_reference,
 )
 from brdfcap.capture.load import load_capture
-from brdfcap.capture.probes import known_sh_lighting
+from brdfcap.capture.probes import ProbeProjection, known_sh_lighting
 from brdfcap.capture.texture_model import texture_model_from_config
 from brdfcap.capture.types import Capture
 from brdfcap.core.atomic import write_json_atomic
@@ -156,11 +156,15 @@ def known_of(capture: Capture, options: RunOptions, samples: Samples | None = No
     if get_problem(options.problem).needs_known_lighting and cfg.lighting_kind == "environment":
         light = known_sh_lighting(cfg.lighting, max(options.brdf_lmax, options.lmax))
     src = cfg.lighting.sources
+    from_probe = light is not None and cfg.lighting.coefficients is None \
+        and cfg.lighting.coefficients_file is None
+    lighting_at = None
+    if from_probe and cfg.lighting.probe_lmax is None:  # the fit may ask for more bands
+        lighting_at = ProbeProjection(cfg.lighting.probe)
     return Known(source=cfg.toml_path, lighting_kind=cfg.lighting_kind,
                  material=None if cfg.material is None else cfg.material.table(),
                  lighting_sh=light,
-                 lighting_from_probe=light is not None and cfg.lighting.coefficients is None
-                 and cfg.lighting.coefficients_file is None,
+                 lighting_from_probe=from_probe, lighting_at=lighting_at,
                  sources=None if src is None else torch.as_tensor(src, dtype=torch.float64),
                  noise=cfg.noise, geometry_source=cfg.geometry_source,
                  image_shape=(cfg.camera.height, cfg.camera.width),

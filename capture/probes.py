@@ -25,8 +25,8 @@ from brdfcap.core.errors import CaptureError
 from .images import read_pixels, write_image
 from .types import KnownLighting
 
-__all__ = ["read_envmap", "write_envmap", "envmap_sh_from_file", "load_sh_lighting_json",
-           "load_known_lighting", "known_sh_lighting"]
+__all__ = ["ProbeProjection", "read_envmap", "write_envmap", "envmap_sh_from_file",
+           "load_sh_lighting_json", "load_known_lighting", "known_sh_lighting"]
 
 
 def read_envmap(path: str | Path) -> torch.Tensor:
@@ -105,6 +105,32 @@ def load_known_lighting(source, lmax: int) -> torch.Tensor:
     if x.ndim != 2 or int(math.isqrt(x.shape[0])) ** 2 != x.shape[0]:
         raise ValueError("SH lighting must be ((lmax+1)^2, C)")
     return x
+
+
+class ProbeProjection:
+    """``ProbeProjection(path)(K)``: a probe file's SH projection to band ``K``, ``((K+1)², C)``.
+
+    Each band asked is projected once (:func:`load_known_lighting`) and kept; picklable (the
+    path, not the image, travels). The pipeline hands it to the fits as
+    :attr:`brdfcap.fit.problems.Known.lighting_at`.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._done: dict[int, torch.Tensor] = {}
+
+    def __call__(self, lmax: int) -> torch.Tensor:
+        """Return the projection to ``lmax`` (computed on first use)."""
+        lmax = int(lmax)
+        if lmax not in self._done:
+            self._done[lmax] = load_known_lighting(self.path, lmax)
+        return self._done[lmax]
+
+    def __getstate__(self):
+        return {"path": self.path}
+
+    def __setstate__(self, state):
+        self.path, self._done = state["path"], {}
 
 
 def known_sh_lighting(lighting: KnownLighting, probe_lmax: int) -> torch.Tensor | None:

@@ -96,6 +96,10 @@ class Known:
     #: :attr:`lighting_sh` is a light probe's SH projection (truncated at its last band), not
     #: coefficients a capture states as the whole lighting
     lighting_from_probe: bool = False
+    #: ``lighting_at(K) -> ((K+1)², C)``: the capture's probe projected to band ``K`` (set by the
+    #: pipeline when :attr:`lighting_sh` is a probe whose ``probe_lmax`` the capture leaves
+    #: open), so a fit can ask for the bands its lobe passes; ``None`` otherwise
+    lighting_at: Any = None
 
     def clip_of(self, samples) -> torch.Tensor | None:
         """``(N,)`` clip level of each sample (by its view), or ``None``."""

@@ -16,7 +16,7 @@ import torch
 
 from brdfcap.core.errors import FitError
 
-from ..brdf import as_brdf_model, get_brdf_model
+from ..brdf import as_brdf_model, get_brdf_model, make_brdf
 from ..brdf_models import diffuse_filter, render_directional
 from ..conditioning import residual_adequacy
 from ..inverse_brdf import fit_brdf_sh
@@ -94,9 +94,24 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     # a parametric model named (--brdf or [material].model): fitted on the exact reflection
     # equation under the known lighting; the radial filter above stays as the measurement
     # that assumes no model (issue 12: "always show the measured rho_l")
-    par = fit_brdf_parametric_sh(samples.normal, samples.wo, samples.radiance, light,
-                                 samples.variance, model=model,
-                                 bounds=_search_bounds(model, opts))
+    def fit_at(lighting):
+        return fit_brdf_parametric_sh(samples.normal, samples.wo, samples.radiance, lighting,
+                                      samples.variance, model=model,
+                                      bounds=_search_bounds(model, opts))
+
+    k0 = int(math.isqrt(light.shape[0])) - 1
+    start = _start_spec(model, opts)
+    k_use = _probe_band(start, k0, known) if start is not None else None
+    par = fit_at(known.lighting_at(k_use) if k_use else light)
+    k_need = _probe_band(par.spec, int(par.extra["lighting_lmax"]), known)
+    if k_need:  # the probe re-projected to the bands the fitted lobe passes, and refitted
+        par = fit_at(known.lighting_at(k_need))
+    if int(par.extra["lighting_lmax"]) > k0:
+        summ.append(f"The probe's SH projected to l = {par.extra['lighting_lmax']} for the "
+                    f"parametric fit (not --brdf-lmax {k0}): the fitted {model} lobe passes "
+                    f"bands to l* = {_lobe_lstar(par.spec):.0f} (filter > {LOBE_EPS:g} of its "
+                    "DC; R&H 2001 eqs. 19-20), and lighting above the last known band enters "
+                    "the fit only as noise.")
     warns = _lighting_band_warning(par, known)
     rec = {"brdf": {**_parametric_record(par, model, "fitted under known SH lighting, exact "
                                                      "reflection equation"), "sh": sh_json},
@@ -195,12 +210,51 @@ def _parametric_estimates(f) -> list[Estimate]:
 LOBE_EPS = 1e-2
 
 
+#: The probe is projected to this multiple of the lobe's ``l*`` when a fit asks for more bands
+#: (measured on a Beckmann σ = 0.2 sphere under Grace, l* = 13: K = 8 left σ 36 standard errors
+#: high, K = 12–14 within 2.3; bench/RESULTS.md, "Session 14").
+PROBE_BAND_FACTOR = 1.25
+#: ... and never above this band (the rotated lighting and the canonical tables grow as K²).
+PROBE_BAND_MAX = 48
+
+
+def _lobe_lstar(spec) -> float | None:
+    """Return the lobe's analytic ``l*`` at :data:`LOBE_EPS` (R&H 2001 eqs. 19-20), or ``None``."""
+    pred = as_brdf_model(spec).predicted_lstar(LOBE_EPS)
+    ls = (pred or {}).get("lstar") if isinstance(pred, dict) else pred
+    return None if ls is None or not math.isfinite(ls) else float(ls)
+
+
+def _probe_band(spec, k: int, known: Known) -> int | None:
+    """Return the band to project the probe to for a lobe ``spec`` (``None``: ``k`` is enough).
+
+    Only where the pipeline can re-project (:attr:`Known.lighting_at`): ``ceil(1.25 l*)``
+    (:data:`PROBE_BAND_FACTOR`), at most :data:`PROBE_BAND_MAX`.
+    """
+    ls = _lobe_lstar(spec)
+    if known.lighting_at is None or ls is None or ls <= k:
+        return None
+    need = min(PROBE_BAND_MAX, math.ceil(PROBE_BAND_FACTOR * ls))
+    return need if need > k else None
+
+
+def _start_spec(model: str, opts: FitOptions):
+    """Return the lobe a second solve starts from (``opts.start``) as a model, or ``None``."""
+    shape = get_brdf_model(model).shape_parameter
+    v = (opts.start or {}).get(shape) if shape else None
+    if v is None:
+        return None
+    t = float(torch.as_tensor(v).reshape(-1)[0])
+    if not math.isfinite(t) or t <= 0:
+        return None
+    return make_brdf(model, validate=False, kd=torch.zeros(3), **{shape: t})
+
+
 def _lighting_band_warning(par, known: Known) -> list[str]:
     """One line when the known lighting is a probe cut below the bands the fitted lobe passes."""
     k = par.extra["lighting_lmax"]
-    pred = as_brdf_model(par.spec).predicted_lstar(LOBE_EPS)
-    ls = (pred or {}).get("lstar") if isinstance(pred, dict) else pred
-    if not known.lighting_from_probe or ls is None or not math.isfinite(ls) or ls <= k:
+    ls = _lobe_lstar(par.spec)
+    if not known.lighting_from_probe or ls is None or ls <= k:
         return []
     return [f"{known.source}: the known lighting is the probe projected to l = {k}, but the "
             f"fitted {par.model} lobe passes bands to l* = {ls:.0f} (filter > {LOBE_EPS:g} of "

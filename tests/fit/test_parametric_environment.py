@@ -11,6 +11,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
+import shutil
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -32,7 +35,7 @@ from click.testing import CliRunner
 from scipy.special import roots_legendre
 
 from brdfcap.cli import main
-from brdfcap.testing import NOISE, scene_text
+from brdfcap.testing import NOISE, reference_dir, scene_text
 
 
 def _samples(n=3000, seed=0):
@@ -239,6 +242,38 @@ def test_a_wrong_model_is_told_apart_from_truncation(tmp_path):
     assert not ad["adequate"] and max(ad["chi2_reduced"]) > 2
     assert "missing bands could leave" in ad["likely_causes"][0]
     assert "phong model does not fit" in ad["likely_causes"][0]
+
+
+PISA = reference_dir(Path(__file__).resolve().parents[2]) / "probes" / "pisa.hdr"
+
+
+@pytest.mark.skipif(not PISA.is_file(), reason=f"shared reference probe not present ({PISA})")
+def test_a_probe_is_projected_to_the_bands_the_fitted_lobe_passes(tmp_path):
+    """A capture whose known lighting is a probe file (no ``probe_lmax``): the pipeline's
+    default projection (``--brdf-lmax`` 8) is below what a Beckmann σ = 0.2 lobe passes
+    (l* = 11), so the parametric fit asks for ``ceil(1.25 l*)`` = 14 bands, says so in the
+    notes and gives no warning; the second (reweighted) solve starts there. Rendered by the
+    reference renderer from the probe itself (Pisa), one view of 40².
+    """
+    light = f'kind = "environment"\nprobe = "{PISA}"\nprobe_lmax = 32\nknown = true'
+    (tmp_path / "s.toml").write_text(scene_text(
+        name="beckmann sphere under pisa", width=40, views=1, material=BECKMANN, lighting=light,
+        noise=NOISE, tail="[render]\nspp = 1\nrel_tol = 3e-3\n"))
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    shutil.copy(PISA, cap / "pisa.hdr")  # the capture names the probe, not its coefficients
+    toml = (cap / "capture.toml").read_text()
+    toml = re.sub(r"(?m)^coefficients = .*$", 'probe = "pisa.hdr"', toml)
+    (cap / "capture.toml").write_text(toml)
+    out = tmp_path / "o"
+    res = CliRunner().invoke(main, ["run", str(cap), "--out", str(out), "--problem", "brdf",
+                                    "--brdf", "beckmann"])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "results.json").read_text())
+    assert r["brdf"]["parametric"]["lighting_lmax"] == 14
+    assert any("projected to l = 14" in n and "l* = 11" in n for n in r["fit_notes"])
+    assert not any("--brdf-lmax" in w for w in r.get("warnings", [])), r.get("warnings")
+    z = [v for row in r["ground_truth"]["brdf"] for v in row["z"]]
+    assert max(abs(v) for v in z) < 4, z
 
 
 def test_a_model_without_a_parametric_form_is_refused_in_one_line(beckmann_capture, tmp_path):
