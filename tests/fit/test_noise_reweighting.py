@@ -103,6 +103,16 @@ SCENE = scene_text(name="phong sphere, distant lights, 5% noise", width=96,
                    tail="[render]\nspp = 1\nrel_tol = 1e-3\n")
 
 
+def _simulate_and_run(tmp_path, scene: str, problem: str) -> dict:
+    """``results.json`` of ``brdfcap run --problem PROBLEM`` on the simulated ``scene``."""
+    (tmp_path / "s.toml").write_text(scene)
+    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
+    out = tmp_path / "o"
+    res = CliRunner().invoke(main, ["run", str(cap), "--out", str(out), "--problem", problem])
+    assert res.exit_code == 0, res.output
+    return json.loads((out / "results.json").read_text())
+
+
 @pytest.mark.parametrize("saturation", [None, 0.5])
 def test_phong_under_distant_lights_with_signal_dependent_noise_is_unbiased(tmp_path,
                                                                             saturation):
@@ -111,12 +121,7 @@ def test_phong_under_distant_lights_with_signal_dependent_noise_is_unbiased(tmp_
     3.5 s.e. of the simulated material — also with the highlights clipped at 0.5.
     """
     scene = SCENE if saturation is None else f"saturation = {saturation}\n" + SCENE
-    (tmp_path / "s.toml").write_text(scene)
-    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
-    out = tmp_path / "o"
-    res = CliRunner().invoke(main, ["run", str(cap), "--out", str(out), "--problem", "brdf"])
-    assert res.exit_code == 0, res.output
-    r = json.loads((out / "results.json").read_text())
+    r = _simulate_and_run(tmp_path, scene, "brdf")
     z = {row["parameter"]: row["z"] for row in r["ground_truth"]["brdf"]}
     assert set(z) == {"kd", "ks", "s"}
     assert max(abs(v) for zs in z.values() for v in zs) < 3.5, z
@@ -131,12 +136,7 @@ def test_the_brdf_map_under_signal_dependent_noise_is_unbiased(tmp_path):
     by the variance at the observed values ks came out 0.5% low (z −4.8, −2.5, −3.7); with the
     variance at the prediction ks and s are within 3 s.e. of the simulated material.
     """
-    (tmp_path / "s.toml").write_text(SCENE)
-    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
-    out = tmp_path / "o"
-    res = CliRunner().invoke(main, ["run", str(cap), "--out", str(out), "--problem", "brdf-map"])
-    assert res.exit_code == 0, res.output
-    r = json.loads((out / "results.json").read_text())
+    r = _simulate_and_run(tmp_path, SCENE, "brdf-map")
     p = r["brdf"]["parameters"]
     z_ks = (np.asarray(p["ks"]) - 0.5) / np.asarray(p["ks_stderr"])
     z_s = (p["shininess"] - 20.0) / p["shininess_stderr"]
