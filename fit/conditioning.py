@@ -818,12 +818,16 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
 
 
 def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tensor | None, *,
-                      view: torch.Tensor | None = None, n_params: int = 0) -> dict:
+                      view: torch.Tensor | None = None, n_params: int = 0,
+                      widen: bool = False) -> dict:
     """:func:`model_adequacy` of any fit from its prediction: for problems without their own.
 
     ``b``, ``pred`` ``(N, C)`` measured and re-rendered radiance in the samples' scan order;
     ``variance`` ``(N, C)`` the noise model's (``None``: no noise model, so no χ², only the
-    residual's structure); ``n_params``: the fit's number of free parameters (``ν = N − p``).
+    residual's structure); ``n_params``: the fit's number of free parameters (``ν = N − p``);
+    ``widen``: the caller scales its errors by the result's ``widen`` (and by ``sqrt(χ²/ν)``
+    when above 1), so the wording says they are widened (``widen_applied``), not "judged after
+    the fit".
     """
     res = (b - pred).to(torch.float64)
     ok = torch.isfinite(res).all(-1)
@@ -843,9 +847,9 @@ def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tenso
                      dtype=torch.float64, device=res.device)
     chi2 = (wres ** 2).sum(0) / dof
     out = _adequacy(res, wres, chi2, dof, b.to(res), w, noise_known=noise_known, view=view,
-                    noise_scale=None, applied=False)
+                    noise_scale=None, applied=widen)
     out["source"] = "the fit's prediction (fit.conditioning.residual_adequacy)"
-    out["widen_applied"] = False
+    out["widen_applied"] = bool(widen and out["widen"] > 1.0)
     return out
 
 

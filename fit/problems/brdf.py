@@ -113,20 +113,28 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                     "DC; R&H 2001 eqs. 19-20), and lighting above the last known band enters "
                     "the fit only as noise.")
     warns = _lighting_band_warning(par, known)
+    adequacy = None
+    if par.variance is not None:  # judged on the variance the fit weighted by
+        beyond = _beyond_truncation(par, model)
+        # a structured residual widens the errors by its AR(1) factor (as problem lighting's
+        # do); not where the residual exceeds what the missing lighting could leave: that
+        # model does not fit, and its errors are said to be lower bounds
+        adequacy = residual_adequacy(samples.radiance, par.prediction, par.variance,
+                                     view=samples.view, n_params=len(par.names),
+                                     widen=not beyond)
+        if beyond:
+            adequacy["adequate"] = False
+            adequacy["likely_causes"] = [beyond] + list(adequacy.get("likely_causes") or [])
+            adequacy["verdict"] = ("the model does not explain the data (see likely_causes); "
+                                   "this problem's errors are not widened for it: read them "
+                                   "as lower bounds")
+        elif adequacy["widen_applied"]:
+            _widen(par, float(adequacy["widen"]))
     rec = {"brdf": {**_parametric_record(par, model, "fitted under known SH lighting, exact "
                                                      "reflection equation"), "sh": sh_json},
            "conditioning": rec["conditioning"]}
-    if par.variance is not None:  # judged on the variance the fit weighted by
-        rec["adequacy"] = residual_adequacy(samples.radiance, par.prediction, par.variance,
-                                            view=samples.view, n_params=len(par.names))
-        beyond = _beyond_truncation(par, model)
-        if beyond:
-            ad = rec["adequacy"]
-            ad["adequate"] = False
-            ad["likely_causes"] = [beyond] + list(ad.get("likely_causes") or [])
-            ad["verdict"] = ("the model does not explain the data (see likely_causes); this "
-                             "problem's errors are not widened for it: read them as lower "
-                             "bounds")
+    if adequacy is not None:
+        rec["adequacy"] = adequacy
     summ = [f"Problem 2 (inverse BRDF, known SH lighting to l = {par.extra['lighting_lmax']}): "
             f"{_fitted_words(par, model)} (exact reflection equation)."] + \
         [s.replace("Problem 2 (inverse BRDF, known SH lighting): ", "Measured, no model: ")
@@ -134,6 +142,14 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     est = _parametric_estimates(par) + [est[0]]
     return FitResult("brdf", est, par.prediction, rec, summary=summ, warnings=warns,
                      bands={"brdf": fit.bands})
+
+
+def _widen(par, factor: float) -> None:
+    """Scale a parametric fit's standard errors by ``factor`` (its covariance by its square)."""
+    par.stderr = {k: v * factor for k, v in par.stderr.items()}
+    par.covariance = par.covariance * factor ** 2
+    par.noise_source += (f"; errors widened {factor:.2g}x for the residual's spatial structure "
+                         "(AR(1) factor of its lag-1 autocorrelation, fit.conditioning)")
 
 
 def _beyond_truncation(par, model: str) -> str | None:
@@ -211,7 +227,7 @@ LOBE_EPS = 1e-2
 
 
 #: The probe is projected to this multiple of the lobe's ``l*`` when a fit asks for more bands
-#: (measured on a Beckmann σ = 0.2 sphere under Grace, l* = 13: K = 8 left σ 36 standard errors
+#: (measured on a Beckmann σ = 0.2 sphere under Grace, l* = 11: K = 8 left σ 36 standard errors
 #: high, K = 12–14 within 2.3; bench/RESULTS.md, "Session 14").
 PROBE_BAND_FACTOR = 1.25
 #: ... and never above this band (the rotated lighting and the canonical tables grow as K²).

@@ -22,6 +22,7 @@ import torch
 from brdfcap.capture.simulate import simulate
 from brdfcap.fit.brdf import make_brdf
 from brdfcap.fit.brdf_models import BRDFSpec, diffuse_filter
+from brdfcap.fit.conditioning import residual_adequacy
 from brdfcap.fit.exact_design import LocalLighting, exact_rows, kernel_power
 from brdfcap.fit.filters import gauss_legendre_panels, radial_filter_by_quadrature
 from brdfcap.fit.parametric import (
@@ -29,7 +30,7 @@ from brdfcap.fit.parametric import (
     _truncation_scale,
 )
 from brdfcap.fit.problems.base import Known
-from brdfcap.fit.problems.brdf import _lighting_band_warning
+from brdfcap.fit.problems.brdf import _lighting_band_warning, _widen
 from brdfcap.fit.sh import band_of_index, real_sh
 from click.testing import CliRunner
 from scipy.special import roots_legendre
@@ -274,6 +275,34 @@ def test_a_probe_is_projected_to_the_bands_the_fitted_lobe_passes(tmp_path):
     assert not any("--brdf-lmax" in w for w in r.get("warnings", [])), r.get("warnings")
     z = [v for row in r["ground_truth"]["brdf"] for v in row["z"]]
     assert max(abs(v) for v in z) < 4, z
+    assert r["adequacy"]["adequate"], r["adequacy"]  # Pisa at K = 14: nothing to widen
+
+
+def test_a_structured_residual_widens_the_parametric_errors():
+    """Problem brdf judges its parametric fit with ``residual_adequacy(widen=True)``: a residual
+    correlated between neighbouring pixels widens the errors by the AR(1) factor
+    ``sqrt((1+ρ)/(1−ρ))`` and the wording says they are widened; white noise widens nothing.
+    """
+    g = torch.Generator().manual_seed(5)
+    n = 4000
+    b = torch.full((n, 3), 0.5, dtype=torch.float64)
+    var = torch.full((n, 3), 1e-4, dtype=torch.float64)
+    white = torch.randn(n, 3, generator=g, dtype=torch.float64) * 1e-2
+    smooth = torch.sin(torch.arange(n, dtype=torch.float64) / 15.0)[:, None] * 1e-2
+    view = torch.zeros(n, dtype=torch.long)
+    ad = residual_adequacy(b, b - white, var, view=view, n_params=7, widen=True)
+    assert ad["adequate"] and not ad["widen_applied"] and ad["widen"] == 1.0
+    ad = residual_adequacy(b, b - smooth - white, var, view=view, n_params=7, widen=True)
+    rho = ad["residual_autocorrelation"]
+    assert not ad["adequate"] and ad["widen_applied"]
+    assert ad["widen"] == pytest.approx(math.sqrt((1 + rho) / (1 - rho)))
+    assert "claims are widened" in ad["verdict"]
+    assert any("intervals are widened by" in c for c in ad["likely_causes"])
+    par = SimpleNamespace(stderr={"kd": torch.tensor([1.0, 2.0]), "s": torch.tensor(3.0)},
+                          covariance=torch.eye(3), noise_source="noise")
+    _widen(par, 2.0)
+    assert par.stderr["kd"].tolist() == [2.0, 4.0] and float(par.stderr["s"]) == 6.0
+    assert torch.equal(par.covariance, 4 * torch.eye(3)) and "widened 2x" in par.noise_source
 
 
 def test_a_model_without_a_parametric_form_is_refused_in_one_line(beckmann_capture, tmp_path):
