@@ -43,6 +43,7 @@ __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "weak_prior_variance", "band_prior_weakening", "MEASURED_BAND_GAMMA",
            "hidden_source", "HIDDEN_SOURCE_LMAX", "ZERO_BAND_LIMIT", "band_data_only_covariance",
            "zero_band_bound", "band_statistics_bayes", "model_adequacy", "residual_adequacy",
+           "VERDICT_NOT_WIDENED",
            "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
@@ -817,6 +818,11 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
                      b, w, noise_known=noise_known, view=view, noise_scale=noise_scale)
 
 
+#: The verdict of a fit the model does not explain whose errors are not widened for it.
+VERDICT_NOT_WIDENED = ("the model does not explain the data (see likely_causes); this "
+                       "problem's errors are not widened for it: read them as lower bounds")
+
+
 def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tensor | None, *,
                       view: torch.Tensor | None = None, n_params: int = 0,
                       widen: bool = False) -> dict:
@@ -954,9 +960,7 @@ def _adequacy(resid: torch.Tensor, wres: torch.Tensor, chi2_t: torch.Tensor, dof
                 if not noise_known and rms_txt else ""))
     else:
         verdict = ("the model does not explain the data; claims are widened (see "
-                   "likely_causes)" if applied else
-                   "the model does not explain the data (see likely_causes); this problem's "
-                   "errors are not widened for it: read them as lower bounds")
+                   "likely_causes)" if applied else VERDICT_NOT_WIDENED)
     return {"adequate": ok, "verdict": verdict, "likely_causes": causes,
             "chi2_reduced": chi2, "chi2_sigma": chi_sig,
             "chi2_note": None if noise_known else "no noise model: no chi2 is reported (the "

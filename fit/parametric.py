@@ -97,10 +97,6 @@ class ParametricFit:
     #: ``(N, C)`` the variance the final fit weighted by (the noise model's, plus a truncation
     #: term under a lighting known to a finite band), or ``None`` without a noise model
     variance: torch.Tensor | None = None
-    #: ``(N, C, P)`` the prediction's derivative in the flat parameters at the optimum and the
-    #: ``(N, C)`` weights of the final solve (not written to results)
-    jacobian: torch.Tensor | None = field(default=None, repr=False)
-    weights: torch.Tensor | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -284,7 +280,7 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
     pred = torch.einsum("ncj,jc->nc", cols, x) + off
     return ParametricFit(model=model, spec=spec, values=values, stderr=stderr, names=names,
                          covariance=cov, chi2_reduced=chi2, n_samples=nuse, noise_source=src,
-                         checks=chk, prediction=pred, jacobian=jac, weights=w)
+                         checks=chk, prediction=pred)
 
 
 #: Spacing in ``log θ`` of the bracketing grid over a range given as ``bounds`` (at least 5
@@ -449,13 +445,16 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
         bound = torch.where(L[0] > 0, L[0] ** 2, torch.full_like(L[0], math.inf)).cpu()
         rounds = []
         used_tau2 = torch.zeros(b.shape[1], dtype=torch.float64)
+        settled = True
         for _ in range(TRUNCATION_ROUNDS + 1):
             t = _power_above(fit.spec, nf, rf, k, lighting)
             est, gain, raw = _truncation_scale(bf - fit.prediction, vf, t, wf > 0, bound)
             rounds.append([round(float(x), 6) for x in est.tolist()])
-            if len(rounds) > 1 and _settled(est, used_tau2):
+            if (len(rounds) > 1 and _settled(est, used_tau2)) or \
+                    (len(rounds) == 1 and not (est > 0).any()):
                 break
-            if len(rounds) == TRUNCATION_ROUNDS + 1 or (len(rounds) == 1 and not (est > 0).any()):
+            if len(rounds) == TRUNCATION_ROUNDS + 1:
+                settled = False
                 break
             used_tau2 = est
             var2 = vf + used_tau2[None, :] * t
@@ -483,9 +482,7 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
                                "bound": [float(x) if math.isfinite(x) else None
                                          for x in bound.tolist()],
                                "exceeds_bound": over.tolist(),
-                               "tau2_unbounded": raw.tolist(),
-                               "settled": len(rounds) == 1 or _settled(
-                                   torch.tensor(rounds[-1], dtype=torch.float64), used_tau2)}
+                               "tau2_unbounded": raw.tolist(), "settled": settled}
         if applied:
             extra["truncation"]["samples_above_noise"] = dom
             tau2 = used_tau2

@@ -18,7 +18,7 @@ from brdfcap.core.errors import FitError
 
 from ..brdf import as_brdf_model, get_brdf_model, make_brdf
 from ..brdf_models import diffuse_filter, render_directional
-from ..conditioning import residual_adequacy
+from ..conditioning import VERDICT_NOT_WIDENED, residual_adequacy
 from ..inverse_brdf import fit_brdf_sh
 from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric_models
 from ..records import conditioning_json
@@ -125,9 +125,7 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
         if beyond:
             adequacy["adequate"] = False
             adequacy["likely_causes"] = [beyond] + list(adequacy.get("likely_causes") or [])
-            adequacy["verdict"] = ("the model does not explain the data (see likely_causes); "
-                                   "this problem's errors are not widened for it: read them "
-                                   "as lower bounds")
+            adequacy["verdict"] = VERDICT_NOT_WIDENED
         elif adequacy["widen_applied"]:
             _widen(par, float(adequacy["widen"]))
     rec = {"brdf": {**_parametric_record(par, model, "fitted under known SH lighting, exact "
@@ -180,15 +178,21 @@ def _search_bounds(model: str, opts: FitOptions) -> tuple[float, float] | None:
     noise reweighting moves the optimum by a fraction of its standard error, so the grid over
     the whole range (``s`` from 0.5 to 1e5) need not be searched again.
     """
+    t = _start_shape(model, opts)
+    lo, hi = get_brdf_model(model).shape_bounds
+    if t is None or not lo < t < hi:
+        return None
+    return max(lo, t / math.e), min(hi, t * math.e)
+
+
+def _start_shape(model: str, opts: FitOptions) -> float | None:
+    """Return the lobe shape (``s``, ``σ``) a second solve starts from, or ``None``."""
     shape = get_brdf_model(model).shape_parameter
     v = (opts.start or {}).get(shape) if shape else None
     if v is None:
         return None
     t = float(torch.as_tensor(v).reshape(-1)[0])
-    lo, hi = get_brdf_model(model).shape_bounds
-    if not (math.isfinite(t) and lo < t < hi):
-        return None
-    return max(lo, t / math.e), min(hi, t * math.e)
+    return t if math.isfinite(t) else None
 
 
 def _band(l) -> str:
@@ -256,14 +260,11 @@ def _probe_band(spec, k: int, known: Known) -> int | None:
 
 def _start_spec(model: str, opts: FitOptions):
     """Return the lobe a second solve starts from (``opts.start``) as a model, or ``None``."""
-    shape = get_brdf_model(model).shape_parameter
-    v = (opts.start or {}).get(shape) if shape else None
-    if v is None:
+    t = _start_shape(model, opts)
+    if t is None or t <= 0:
         return None
-    t = float(torch.as_tensor(v).reshape(-1)[0])
-    if not math.isfinite(t) or t <= 0:
-        return None
-    return make_brdf(model, validate=False, kd=torch.zeros(3), **{shape: t})
+    return make_brdf(model, validate=False, kd=torch.zeros(3),
+                     **{get_brdf_model(model).shape_parameter: t})
 
 
 def _lighting_band_warning(par, known: Known) -> list[str]:
