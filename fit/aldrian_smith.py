@@ -487,6 +487,15 @@ class AldrianSmithFit:
     ambiguities: list[dict] = field(default_factory=list)
     #: per κ_l: determined by the data (κ_0 is not with a free albedo: set to 0, stderr inf)
     specular_low_determined: torch.Tensor | None = None
+    #: free albedo: Laplace log marginal likelihood of the smoothness weight (up to a constant)
+    log_evidence: float | None = None
+    #: free albedo: ``((lmax+1)², 3)`` share of each lighting coefficient's precision that the
+    #: data supply (variance with the smoothness prior / with it WEAK_PRIOR_FACTOR as strong)
+    data_share: torch.Tensor | None = None
+    #: free albedo: bands whose median data share is below DATA_SHARE_MIN (not determined)
+    prior_set_bands: list = field(default_factory=list)
+    #: ``(θ, albedo, prior scale d)`` at the optimum: the warm start of an evidence search
+    _state: tuple | None = field(default=None, repr=False)
 
     def _kappa_out(self) -> tuple[list, list]:
         """κ_l and their standard errors for results.json, ``None`` where not determined."""
@@ -518,14 +527,24 @@ class AldrianSmithFit:
             bad = not det or float(snr[sel].median()) < 1.0
             if bad and ill is None:
                 ill = lb
+            share = (None if self.data_share is None or lb in self.unobservable_bands
+                     else float(self.data_share[sel].median()))
+            prior_set = lb in self.prior_set_bands
             bands.append({"l": lb, "n_coefficients": int(sel.sum()),
                           "determined_fraction": float(self.determined[sel].double().mean()),
                           "median_rel_stderr": float(self.lighting_stderr[sel].median()) / l00
-                          if det else None,
+                          if det or prior_set else None,
                           "median_snr": float(snr[sel].median()) if det else None,
                           "singular_min": None, "singular_max": None, "condition": None,
-                          "resolution": "unobservable (Lambertian Â_l = 0)" if not det else
-                          "posterior covariance", "ill_conditioned": bad})
+                          "data_share": share,
+                          "resolution": "unobservable (Lambertian Â_l = 0)"
+                          if lb in self.unobservable_bands else
+                          f"set by the albedo smoothness prior, not the data (the data supply "
+                          f"{share:.0%} of its precision); standard errors with that prior "
+                          f"{1 / WEAK_PRIOR_FACTOR:g}x weaker" if prior_set else
+                          "posterior covariance"
+                          + (f" (the data supply {share:.0%} of its precision)"
+                             if share is not None else ""), "ill_conditioned": bad})
         se = [[v if math.isfinite(v) else None for v in row]
               for row in self.lighting_stderr.tolist()]
         return {"lmax": self.lmax, "sh": "rh2001-real", "frame": "world",
@@ -533,8 +552,11 @@ class AldrianSmithFit:
                 "determined": self.determined[:, None].expand(-1, 3).tolist(),
                 "ill_conditioned_from_l": ill,
                 "ill_conditioning_definition": "Aldrian & Smith: band l is ill-conditioned when "
-                "a coefficient is unobservable (odd l >= 3) or the band's median |L|/stderr < 1 "
-                "(posterior standard errors)", "bands": bands,
+                "a coefficient is unobservable (odd l >= 3), the band's median |L|/stderr < 1 "
+                "(posterior standard errors), or (free albedo) the albedo's smoothness prior "
+                f"supplies more than {1 - DATA_SHARE_MIN:.0%} of the band's precision (median "
+                "ratio of its variance with the prior to its variance with the prior "
+                f"{1 / WEAK_PRIOR_FACTOR:g}x weaker below {DATA_SHARE_MIN:g})", "bands": bands,
                 "unobservable_bands": self.unobservable_bands,
                 "unobservable_reason": "odd bands l >= 3: the clamped-cosine filter A_l is 0 "
                 "(R&H 2001 eq. 8); not seen by a Lambertian surface, set to 0, not estimated",
@@ -678,7 +700,7 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
                       texture_mean: torch.Tensor | None = None,
                       texture_pcs: torch.Tensor | None = None,
                       colour=None, grayworld: float = 0.0, simplicity: float = 0.0,
-                      smoothness: float = 0.1, edges: torch.Tensor | None = None,
+                      smoothness: float | str = "evidence", edges: torch.Tensor | None = None,
                       positions: torch.Tensor | None = None, albedo_level: float = 0.5,
                       albedo_prior: float = 1e-3, variance: torch.Tensor | None = None,
                       max_outer: int = 3, inner_iter: int = 20, refine_iter: int = 100,
@@ -713,6 +735,9 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
         Free albedo only: weight of ``Σ_(i,j)∈E ||a_i − a_j||²`` over ``edges`` (``(E, 2)``;
         default the 6-nearest-neighbour graph of ``positions``, else of the normals), and of
         ``Σ ||a_i − albedo_level||²`` (fixes the albedo × lighting scale, stated in the results).
+        ``smoothness="evidence"`` (default) chooses the weight on :data:`SMOOTHNESS_GRID` by the
+        Laplace marginal likelihood (:func:`_laplace_log_evidence`; ``docs/fitting.md``,
+        "The free albedo's smoothness"); a number fixes it.
     variance : torch.Tensor, optional
         ``(N, 3)`` noise variance; without it the residual variance is used.
     max_outer, inner_iter, refine_iter, tol :
@@ -725,8 +750,15 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
     -------
     AldrianSmithFit
     """
+    args = dict(locals())
     try:
-        return _fit(**locals())
+        if not isinstance(smoothness, str):
+            return _fit(**args)
+        if smoothness != "evidence":
+            raise ValueError(f"smoothness must be a number or 'evidence', got {smoothness!r}")
+        if texture_pcs is not None:  # no free albedo: the weight is not used
+            return _fit(**{**args, "smoothness": 0.0})
+        return _fit_smoothness_by_evidence(args)
     except (torch.linalg.LinAlgError, RuntimeError) as e:
         if isinstance(e, FitError) or "singular" not in str(e):
             raise
@@ -737,8 +769,13 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
 
 def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, texture_pcs, colour,
          grayworld, simplicity, smoothness, edges, positions, albedo_level, albedo_prior,
-         variance, max_outer, inner_iter, refine_iter, tol) -> AldrianSmithFit:
-    """Body of :func:`fit_aldrian_smith` (its arguments and defaults, passed by keyword)."""
+         variance, max_outer, inner_iter, refine_iter, tol, start=None) -> AldrianSmithFit:
+    """Body of :func:`fit_aldrian_smith` (its arguments and defaults, passed by keyword).
+
+    ``start``: the ``_state`` of a fit of the same samples with another smoothness weight — its
+    parameters start the joint refinement (the paper's step order is skipped) and its prior
+    scale ``d`` is kept, so that the weights of an evidence search scale one prior.
+    """
     n = torch.nn.functional.normalize(torch.as_tensor(normal).to(_F64), dim=-1)
     r = torch.nn.functional.normalize(torch.as_tensor(reflected).to(_F64), dim=-1)
     obs = torch.as_tensor(radiance).to(_F64)
@@ -865,14 +902,17 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
             edges_used = f"{len(edges)} given edges"
         lap = _laplacian(torch.as_tensor(edges), N)
     Pa = torch.zeros(A, A, dtype=_F64) if texture else sp.csc_matrix((A, A))
+    prior_block = [None, None]  # free albedo: per-channel prior precision, its scale d
 
-    def make_pa(shade):
+    def make_pa(shade, d=None):
         if texture:
             ja = mix(jac_a(shade).reshape(3, N, A)).reshape(3 * N, A)
             d = ((ja ** 2) * ww[:, None]).sum(0).mean()
             return (simplicity + 1e-12) * float(d) * torch.eye(A, dtype=_F64)
-        d = float(free_blocks(shade, w).diagonal().sum() / max(3 * int(ok.sum()), 1))
+        if d is None:  # the mean data precision of one albedo value (the prior's unit)
+            d = float(free_blocks(shade, w).diagonal().sum() / max(3 * int(ok.sum()), 1))
         blk = smoothness * d * lap + albedo_prior * d * sp.identity(N)
+        prior_block[:] = [blk, d]
         return sp.block_diag([blk] * 3, format="csc")
 
     def cost(th_, ta_):
@@ -937,6 +977,10 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     iters = 0
     Pa_set = False
     prev = math.inf
+    if start is not None:  # warm start (an evidence search): straight to the joint refinement
+        th, ta = start[0].clone(), start[1].clone()
+        Pa = make_pa(None, start[2]) if not texture else make_pa(model(th, ta)[1])
+        inner_iter, max_outer = 0, 0
     for _ in range(inner_iter):
         iters += 1
         Hgg, rg, Haa, ra, _, _, _ = system(th, ta, want_ga=False)
@@ -1022,6 +1066,15 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     s2 = chi2 if variance is None else max(1.0, chi2)
     Sinv = torch.linalg.inv(Sg)
     cov_g = s2 * Sinv
+    weak_var = None
+    if not texture:
+        # the same optimum, the albedo's smoothness prior WEAK_PRIOR_FACTOR times weaker
+        pw = sp.block_diag([smoothness * WEAK_PRIOR_FACTOR * prior_block[1] * lap
+                            + albedo_prior * prior_block[1] * sp.identity(N)] * 3, format="csc")
+        ha_w = (free_blocks(shade, w) + pw).tocsc()
+        lu_w = spla.splu(ha_w)
+        x_w = torch.as_tensor(lu_w.solve(np.asarray(Hga.T)))
+        weak_var = s2 * torch.diagonal(torch.linalg.inv(Hgg - Hga @ x_w))
     cov_b = None
     if texture:
         Hinv_aa = torch.linalg.inv(Haa)
@@ -1060,12 +1113,36 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
             cov_b = cov_b + dAD @ col.covariance @ dAD.T
             cov_gb = cov_gb + dgD @ col.covariance @ dAD.T
     se_g = torch.diagonal(cov_g).clamp_min(0).sqrt()
+    share = None  # free albedo: the data's share of each lighting coefficient's precision
+    if weak_var is not None:
+        # the colour transform's propagated part is the same under either prior
+        vw = (weak_var + torch.diagonal(cov_g) - s2 * torch.diagonal(Sinv)).clamp_min(1e-300)
+        kall = (lmax + 1) ** 2
+        share = torch.zeros(kall, 3, dtype=_F64)
+        share[observ] = (torch.diagonal(cov_g) / vw)[iL].reshape(3, ko).T.clamp(0.0, 1.0)
+        weak_se = torch.full((kall, 3), math.inf, dtype=_F64)
+        weak_se[observ] = vw[iL].sqrt().reshape(3, ko).T
+    log_ev = None
+    if not texture:
+        log_ev = _laplace_log_evidence(cost(th, ta), Ha, Sg, prior_block[0], n_obs,
+                                       variance is not None)
     L, kap, xh = unpack(th)
     K = (lmax + 1) ** 2
     Lfull = torch.zeros(K, 3, dtype=_F64)
     Lfull[observ] = L
     Lse = torch.full((K, 3), math.inf, dtype=_F64)
     Lse[observ] = se_g[iL].reshape(3, ko).T
+    determined = observ.clone()
+    prior_set: list[int] = []
+    if share is not None:
+        # a band whose precision comes mostly from the albedo's smoothness prior is set by
+        # that assumption, not measured: not determined, its errors those of a weaker prior
+        for lb in range(lmax + 1):
+            sel = (band == lb) & observ
+            if bool(sel.any()) and float(share[sel].median()) < DATA_SHARE_MIN:
+                prior_set.append(lb)
+                determined[sel] = False
+                Lse[sel] = weak_se[sel]
     names = ([f"L[{i},{c}]" for c in range(3) for i in torch.nonzero(observ).reshape(-1).tolist()]
              + [f"kappa_{i}" for i in range(nk)] + [f"x_h[{i},{c}]" for c in range(3)
                                                    for i in range(kh)])
@@ -1083,8 +1160,12 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
         albedo_model = (f"free per-sample albedo, smoothness prior (weight {smoothness:g}) over "
                         f"the {edges_used}; no texture model")
         scale_res = (f"fixed by the assumption mean albedo ≈ {albedo_level:g} (prior weight "
-                     f"{albedo_prior:g}); lighting and κ carry the scale")
-    amb = [{"name": "albedo x lighting scale", "resolution": scale_res},
+                     f"{albedo_prior:g}) and, per channel, by the grayworld prior: with a free "
+                     "albedo the images fix neither the lighting's scale nor its colour (a_c → "
+                     "a_c/s_c, L_c → s_c L_c leaves every diffuse pixel unchanged), so the "
+                     "lighting is in that convention; lighting and κ carry the scale")
+    amb = [{"name": "albedo x lighting scale", "resolution": scale_res}
+           | ({} if texture else {"gauge": "channel scale"}),
            {"name": "colour (red light vs red object)",
             "resolution": (f"grayworld prior (weight {grayworld:g}) prefers white light"
                            if grayworld > 0 else "texture model colour statistics"
@@ -1115,7 +1196,7 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     if not texture:
         kse[0], kdet[0] = math.inf, False
     return AldrianSmithFit(
-        lmax=lmax, lighting_radiance=Lfull, lighting_stderr=Lse, determined=observ.clone(),
+        lmax=lmax, lighting_radiance=Lfull, lighting_stderr=Lse, determined=determined,
         unobservable_bands=unobservable, albedo=alb, albedo_model=albedo_model,
         texture_coefficients=ta.clone() if texture else None,
         texture_stderr=torch.diagonal(cov_b).clamp_min(0).sqrt() if texture else None,
@@ -1129,8 +1210,82 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
                 "smoothness": None if texture else smoothness,
                 "albedo_prior": None if texture else albedo_prior,
                 "albedo_level": None if texture else albedo_level},
-        ambiguities=amb)
+        ambiguities=amb, log_evidence=log_ev, data_share=share, prior_set_bands=prior_set,
+        _state=(th.clone(), ta.clone(), prior_block[1]))
 
+
+def _logdet_sparse(a) -> float:
+    """``log |det a|`` of a sparse square matrix (SuperLU: ``|det| = Π |U_ii|``)."""
+    lu = spla.splu(sp.csc_matrix(a))
+    return float(np.log(np.abs(lu.U.diagonal())).sum())
+
+
+def _laplace_log_evidence(cost: float, Ha, Sg: torch.Tensor, prior_block, n_obs: int,
+                          noise_known: bool) -> float:
+    """Laplace log marginal likelihood of the free-albedo smoothness, up to a constant.
+
+    ``−½ C + ½ log det P_a − ½ log det H`` (MacKay 1992, eq. 2.20 with the Hessian at the
+    optimum), ``C`` the cost at the optimum, ``P_a`` the albedo's prior precision (3 identical
+    channel blocks) and ``log det H = log det H_aa + log det S`` (the Schur complement of the
+    global block). Without a noise model the variance is profiled (``σ² = C / n``).
+    """
+    ld_h = _logdet_sparse(Ha) + float(torch.linalg.slogdet(Sg)[1])
+    ld_p = 3.0 * _logdet_sparse(prior_block)
+    if noise_known:
+        return -0.5 * cost + 0.5 * (ld_p - ld_h)
+    s2 = max(cost / max(n_obs, 1), 1e-300)
+    g = Sg.shape[0]
+    return -0.5 * n_obs * math.log(s2) + 0.5 * g * math.log(s2) + 0.5 * (ld_p - ld_h)
+
+
+#: Relative weights of the free albedo's smoothness prior an evidence search tries, from the
+#: strongest down (``smoothness="evidence"``). 1e3: neighbouring albedos equal to ~3% of a
+#: sample's noise; 0.1: each albedo nearly free (it then absorbs the noise and trades the
+#: lighting's low bands for smooth albedo gradients: on a uniform Lambertian sphere rendered by
+#: the simulator the lighting's bands 1–2 came out 11–50% off, 5.6 standard errors).
+SMOOTHNESS_GRID = (1e3, 1e2, 10.0, 1.0, 0.1)
+#: Weights within this many nats of the highest evidence explain the data equally well: the
+#: weakest of them (widest posterior) is kept.
+EVIDENCE_TIE = 1.0
+#: The search stops once a weight's evidence is this many nats below the best.
+EVIDENCE_DROP = 50.0
+
+
+def _fit_smoothness_by_evidence(args: dict) -> AldrianSmithFit:
+    """Fit the free albedo at the smoothness weight of highest evidence on the grid.
+
+    Each weight is fitted from the previous optimum (warm start, same prior scale); the search
+    stops :data:`EVIDENCE_DROP` nats below the best. Of the weights within
+    :data:`EVIDENCE_TIE` nats of the best, the weakest is returned. ``priors`` records the
+    weight, the grid searched and each log evidence.
+    """
+    fits: list[tuple[float, AldrianSmithFit]] = []
+    start = None
+    for lam in SMOOTHNESS_GRID:
+        f = _fit(**{**args, "smoothness": lam, "start": start})
+        fits.append((lam, f))
+        start = f._state
+        best = max(g.log_evidence for _, g in fits)
+        if f.log_evidence < best - EVIDENCE_DROP:
+            break
+    best = max(g.log_evidence for _, g in fits)
+    lam, f = min(((lam_, g) for lam_, g in fits if g.log_evidence >= best - EVIDENCE_TIE),
+                 key=lambda t: t[0])
+    f.priors["smoothness_rule"] = ("evidence (Laplace marginal likelihood; the weakest weight "
+                                   f"within {EVIDENCE_TIE:g} nat of the best)")
+    f.priors["smoothness_evidence"] = [[lam_, g.log_evidence] for lam_, g in fits]
+    f.albedo_model = f.albedo_model.replace(
+        f"(weight {lam:g})", f"(weight {lam:g}, chosen by the evidence from "
+        f"{', '.join(f'{x:g}' for x, _ in fits)})")
+    return f
+
+
+#: The weaker smoothness prior a free-albedo fit's data share is measured against (× the
+#: weight used): two decades of the evidence grid.
+WEAK_PRIOR_FACTOR = 1e-2
+#: A lighting band whose median data share is below this is set by the albedo smoothness
+#: prior, not determined by the data (the prior supplies more than half its precision).
+DATA_SHARE_MIN = 0.5
 
 #: Pipeline mode fits at most this many samples (an even subsample; all are predicted).
 PIPELINE_MAX_SAMPLES = 3000

@@ -390,7 +390,9 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
     A recovered lighting whose scale was fixed by setting the albedo to 1 is compared with
     true lighting × true albedo (the product the fit determines); one whose global scale is a
     gauge (``ambiguities``: "global scale", fixed by convention, problem ``both``) with the true
-    lighting × the least-squares scale over the determined coefficients (``gauge_scale``).
+    lighting × the least-squares scale over the determined coefficients (``gauge_scale``); one
+    whose scale *and colour* are a gauge (an ambiguity with ``"gauge": "channel scale"``,
+    problem ``aldrian-smith`` with a free albedo) with one such factor per channel (a list).
     """
     out: dict = {"source": "ground_truth.json", "lighting": None, "brdf": []}
     lt = results.get("lighting")
@@ -412,16 +414,28 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
         # that one scale — the least-squares factor over the determined coefficients — else
         # the gauge alone reads as an error of many standard errors
         gauge = next((a for a in results.get("ambiguities") or []
-                      if isinstance(a, dict) and a.get("name") == "global scale"
-                      and str(a.get("resolution", "")).startswith("fixed")), None)
+                      if isinstance(a, dict) and (a.get("gauge") in ("global scale",
+                                                                     "channel scale")
+                      or a.get("name") == "global scale"
+                      and str(a.get("resolution", "")).startswith("fixed"))), None)
         g_scale = None
         if gauge is not None and not scaled:
             sel = np.isfinite(err) & (err > 0)
             sel = sel if sel.any() else np.ones_like(sel)
-            den = float(np.sum(t[sel] ** 2))
-            if den > 0:
-                g_scale = float(np.sum(est[sel] * t[sel]) / den)
-                t = t * g_scale
+            if gauge.get("gauge") == "channel scale":
+                # one factor per channel (a free albedo: the images fix neither the
+                # lighting's scale nor its colour), least squares over the channel's
+                # coefficients that carry an error
+                num = np.sum(np.where(sel, est * t, 0.0), axis=0)
+                den = np.sum(np.where(sel, t * t, 0.0), axis=0)
+                fac = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+                g_scale = [float(v) for v in fac]
+                t = t * fac[None, :]
+            else:
+                den = float(np.sum(t[sel] ** 2))
+                if den > 0:
+                    g_scale = float(np.sum(est[sel] * t[sel]) / den)
+                    t = t * g_scale
         z = np.where(np.isfinite(err) & (err > 0), (est - t) / np.where(err > 0, err, 1),
                      np.nan)
         lmax = int(math.isqrt(k)) - 1
@@ -454,7 +468,11 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
                                            if scaled else "") + (
                                f" × {g_scale:.4g}, the global scale the images do not fix "
                                f"({gauge['resolution']}), least squares over the determined "
-                               f"coefficients" if g_scale is not None else ""),
+                               f"coefficients" if isinstance(g_scale, float) else
+                               " × " + ", ".join(f"{v:.4g}" for v in g_scale)
+                               + " per channel, the scale and colour the images do not fix "
+                               f"({gauge['name']}), least squares over the coefficients with "
+                               "an error" if g_scale is not None else ""),
                            "gauge_scale": g_scale,
                            "simulation_accuracy": acc,
                            "true": t.tolist(), "z": [[None if not math.isfinite(v) else float(v)

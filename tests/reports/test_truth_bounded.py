@@ -77,3 +77,29 @@ def test_a_gauge_scale_is_not_read_as_an_error():
     # without the gauge the same numbers are compared as they are
     del res["ambiguities"]
     assert truth_comparison(res, truth)["lighting"]["gauge_scale"] is None
+
+
+def test_a_channel_scale_gauge_is_one_factor_per_channel():
+    """Problem ``aldrian-smith`` with a free albedo: the images fix neither the lighting's scale
+    nor its colour (``a_c → a_c/s_c, L_c → s_c L_c``); the ambiguity says ``"gauge": "channel
+    scale"`` and the truth is compared up to one least-squares factor per channel — a colour
+    change alone reads as no error, a shape error within a channel still does.
+    """
+    true = [[0.79, 0.44, 0.54], [0.39, 0.35, 0.6], [-0.34, -0.18, -0.27], [-0.29, -0.06, 0.01]]
+    fac = [1.3, 0.8, 2.0]
+    res = _results(0.01)
+    res["lighting"]["stderr"] = [[0.002] * 3] * 4
+    res["lighting"]["coefficients"] = [[f * v for f, v in zip(fac, row)] for row in true]
+    res["ambiguities"] = [{"name": "albedo x lighting scale", "resolution": "fixed by ...",
+                           "gauge": "channel scale"}]
+    truth = {"lighting": {"coefficients": true, "lmax": 1}}
+    gt = truth_comparison(res, truth)["lighting"]
+    assert gt["gauge_scale"] == pytest.approx(fac, rel=1e-9)
+    assert max(b["max_abs_z"] for b in gt["bands"]) < 1e-6
+    assert "per channel" in gt["truth"]
+    # one global factor would leave the colour change as an error of many std. errors
+    res["ambiguities"][0]["gauge"] = "global scale"
+    assert max(b["max_abs_z"] for b in truth_comparison(res, truth)["lighting"]["bands"]) > 50
+    res["ambiguities"][0]["gauge"] = "channel scale"
+    res["lighting"]["coefficients"][1][0] *= 1.2
+    assert truth_comparison(res, truth)["lighting"]["bands"][1]["max_abs_z"] > 5
