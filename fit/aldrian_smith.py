@@ -539,6 +539,9 @@ class AldrianSmithFit:
                           "data_share": share,
                           "resolution": "unobservable (Lambertian Â_l = 0)"
                           if lb in self.unobservable_bands else
+                          "confounded with the specular DC κ_0 (free albedo: κ_0 is set to 0 "
+                          "and L_00 carries the surface's specular DC): no interval given"
+                          if lb == 0 and self.data_share is not None else
                           f"set by the albedo smoothness prior, not the data (the data supply "
                           f"{share:.0%} of its precision): no interval given" if prior_set else
                           "posterior covariance"
@@ -552,9 +555,10 @@ class AldrianSmithFit:
                 "ill_conditioned_from_l": ill,
                 "ill_conditioning_definition": "Aldrian & Smith: band l is ill-conditioned when "
                 "a coefficient is unobservable (odd l >= 3), the band's median |L|/stderr < 1 "
-                "(posterior standard errors), or (free albedo) the albedo's smoothness prior "
-                f"supplies more than {1 - DATA_SHARE_MIN:.0%} of the band's precision (median "
-                "ratio of its variance with the prior to its variance with the prior "
+                "(posterior standard errors), or, with a free albedo, band 0 (confounded with "
+                "the specular DC κ_0) and any band whose precision the albedo's smoothness prior "
+                f"supplies more than {1 - DATA_SHARE_MIN:.0%} of (median ratio of its variance "
+                "with the prior to its variance with the prior "
                 f"{1 / WEAK_PRIOR_FACTOR:g}x weaker below {DATA_SHARE_MIN:g})", "bands": bands,
                 "unobservable_bands": self.unobservable_bands,
                 "unobservable_reason": "odd bands l >= 3: the clamped-cosine filter A_l is 0 "
@@ -1142,6 +1146,13 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
                 prior_set.append(lb)
                 determined[sel] = False
                 Lse[sel] = math.inf
+        # κ_0 is pinned at 0 with a free albedo: a uniform albedo's data are matched exactly
+        # by L_00 (1 + π κ_0 / (a Â_0)) and κ_0 = 0, so L_00 carries whatever specular DC the
+        # surface has — not determined (measured: a Phong-lobed sphere's L_00 1.4-1.7x its
+        # truth, relative to bands 1-2)
+        sel0 = band == 0
+        determined[sel0] = False
+        Lse[sel0] = math.inf
     names = ([f"L[{i},{c}]" for c in range(3) for i in torch.nonzero(observ).reshape(-1).tolist()]
              + [f"kappa_{i}" for i in range(nk)] + [f"x_h[{i},{c}]" for c in range(3)
                                                    for i in range(kh)])

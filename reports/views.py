@@ -419,9 +419,11 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
                       or a.get("name") == "global scale"
                       and str(a.get("resolution", "")).startswith("fixed"))), None)
         g_scale = None
+        over = "the determined coefficients"
         if gauge is not None and not scaled:
             sel = np.isfinite(err) & (err > 0)
-            sel = sel if sel.any() else np.ones_like(sel)
+            if not sel.any():
+                sel, over = np.ones_like(sel), "every coefficient (none carries an error)"
             if gauge.get("gauge") == "channel scale":
                 # one factor per channel (a free albedo: the images fix neither the
                 # lighting's scale nor its colour), least squares over the channel's
@@ -467,12 +469,12 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
         out["lighting"] = {"truth": how + (" × true albedo (the fit determines the product)"
                                            if scaled else "") + (
                                f" × {g_scale:.4g}, the global scale the images do not fix "
-                               f"({gauge['resolution']}), least squares over the determined "
-                               f"coefficients" if isinstance(g_scale, float) else
+                               f"({gauge['resolution']}), least squares over {over}"
+                               if isinstance(g_scale, float) else
                                " × " + ", ".join(f"{v:.4g}" for v in g_scale)
                                + " per channel, the scale and colour the images do not fix "
-                               f"({gauge['name']}), least squares over the coefficients with "
-                               "an error" if g_scale is not None else ""),
+                               f"({gauge['name']}), least squares over {over}"
+                               if g_scale is not None else ""),
                            "gauge_scale": g_scale,
                            "simulation_accuracy": acc,
                            "true": t.tolist(), "z": [[None if not math.isfinite(v) else float(v)
