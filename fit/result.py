@@ -150,6 +150,10 @@ class FitResult:
         Per-band statistics per recovered quantity (``{"lighting": [...], "brdf": [...]}``;
         each a list of per-``l`` records from :func:`brdfcap.fit.conditioning.band_statistics`
         or the measurement's own), also in ``record``.
+    restart : dict
+        Hyper-parameters a second solve of the same problem keeps (the reweighting of
+        :func:`brdfcap.fit.problems.solve_problem` passes them in ``FitOptions.start``; not
+        written to ``results.json``), e.g. ``aldrian-smith``'s evidence-chosen smoothness.
     """
 
     problem: str
@@ -164,6 +168,7 @@ class FitResult:
     measurement: Any = None
     known_albedo: torch.Tensor | None = None
     bands: dict[str, list[dict]] = field(default_factory=dict)
+    restart: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.bands and self.lighting is not None and getattr(self.lighting, "bands",

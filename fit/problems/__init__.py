@@ -53,7 +53,7 @@ def solve_problem(name: str, samples, known: Known, options: FitOptions) -> FitR
         again = reweighted_samples(res, samples, known)
         if again is not None:
             samples, note = again
-            start = {e.quantity: e.value for e in res.estimates if not e.known}
+            start = {e.quantity: e.value for e in res.estimates if not e.known} | res.restart
             res = problem.solve(samples, known, replace(options, start=start))
             res.record["noise_reweighting"] = note
             res.summary.append(note["text"])

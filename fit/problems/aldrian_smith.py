@@ -50,8 +50,10 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
             raise FitError("[texture_model] needs a mesh capture (per-sample world positions); "
                            "this capture has a normal map", known.source)
         texture = known.texture_model.at(samples.position)
+    # a reweighted second solve keeps the first one's evidence-chosen smoothness
+    smooth = (opts.start or {}).get("albedo_smoothness", "evidence")
     res = fit_aldrian_smith_samples(samples, lmax=opts.lmax, colour=colour, texture=texture,
-                                    rule=opts.rule)
+                                    rule=opts.rule, smoothness=smooth)
     note = "posterior standard error (Aldrian & Smith 2011 model with its priors)"
     est = [Estimate("lighting", res.lighting_radiance, res.lighting_stderr, "sh", note=note),
            Estimate("albedo_mean", res.albedo.mean(0), None, "channel",
@@ -62,11 +64,18 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
                     or bool(res.specular_low_determined.all()) else
                     note + "; kappa_0 not determined with a free albedo (set to 0, the albedo "
                     "carries the specular DC)")]
+    if smooth != "evidence":
+        res.priors["smoothness_rule"] = ("evidence, chosen on the first solve and kept for the "
+                                         "solve with the noise variance at its prediction")
+        res.albedo_model = res.albedo_model.replace(
+            f"(weight {smooth:g})", f"(weight {smooth:g}, chosen by the evidence)")
+    restart = ({"albedo_smoothness": res.priors["smoothness"]} if texture is None
+               and res.priors.get("smoothness") is not None else {})
     return FitResult("aldrian-smith", est, res.prediction, res.to_results(),
-                     summary=res.summary(), ambiguities=list(res.ambiguities))
+                     summary=res.summary(), ambiguities=list(res.ambiguities), restart=restart)
 
 
 register_problem(Problem(
     "aldrian-smith", problem_aldrian_smith,
     "Aldrian & Smith's (2011) photometric model (colour transform, albedo, SH lighting, "
-    "specular on the reflected direction)"))
+    "specular on the reflected direction)", reweight=True))

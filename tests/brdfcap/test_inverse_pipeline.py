@@ -335,8 +335,11 @@ def test_problem_aldrian_smith_with_texture_model(captures, tmp_path):
     band-limited Grace lighting: L = Grace, κ_l = ks Â_l(s) = 0.5·[1, 21/22, 0.8696]
     (Funk-Hecke, R&H 2001). The capture is rendered by the independent reference renderer
     (issue 13), whose Phong lobe is clamped at the horizon; A&S's SH model is not, so the
-    recovered lighting bands carry that model error: measured 0.57% of L00 (1e-2 tolerance
-    below; it was 0.15% when the data came from the SH forward model itself). The texture
+    recovered lighting bands carry that model error: measured 1.4% of L00 (2e-2 tolerance
+    below; 0.15% when the data came from the SH forward model itself; 0.57% while the
+    pipeline also applied the grayworld prior with a texture model, which pulls a coloured
+    light toward grey — dropped there, session 15: the texture's mean colour fixes the light's,
+    and on a noisy capture the prior biased L00 by 2.7 standard errors). The texture
     model: mean 0.3 plus two smooth components on a Fibonacci sphere of vertices. With a
     uniform albedo the specular DC κ_0 and the diffuse DC are separable only as
     (albedo + κ_0)·L_00 (reported as an ambiguity); κ_1, κ_2 and the lighting bands ≥ 1 are
@@ -366,7 +369,7 @@ def test_problem_aldrian_smith_with_texture_model(captures, tmp_path):
     assert max(abs(k[i] - kappa[i]) for i in (1, 2)) < 0.01
     est = r["lighting"]["coefficients"]
     err = max(abs(e - t) for re, rt in zip(est[1:], GRACE_RH2001[1:]) for e, t in zip(re, rt))
-    assert err < 1e-2 * GRACE_RH2001[0][0]
+    assert err < 2e-2 * GRACE_RH2001[0][0]
     for c in range(3):  # the determined DC combination
         dc, dc_t = (a["albedo_mean"][c] + k[0]) * est[0][c], 0.8 * GRACE_RH2001[0][c]
         assert abs(dc - dc_t) < 1e-2 * dc_t  # the same horizon-clamp model error
