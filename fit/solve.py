@@ -635,22 +635,26 @@ def _live_columns(g: torch.Tensor) -> torch.Tensor:
 
 
 #: From this order up a dense factorisation keeps the process threads (:func:`_lapack_threads_for`).
-LAPACK_PARALLEL_MIN = 600
+LAPACK_PARALLEL_MIN = 1400
 
 
 @contextmanager
 def _lapack_threads_for(k: int = 0):
-    """Run the dense factorisation of one ``k × k`` matrix on one thread below 600 columns.
+    """Run the dense factorisation of one ``k × k`` matrix on one thread below 1400 columns.
 
     Measured on the shared 2-core VM (load 4): ``eigh`` of 234² costs 2.7 ms CPU on one thread
     and 4–8 ms on two, 625² 32 against 54–78 ms, 1024² 150 against 165 ms, and inside the
     309k-sample Lambertian fit at two threads its 26 ``eigh`` took 7.3 s CPU (0.03 s on one):
     LAPACK's many small parallel regions wait for a second core the other jobs hold. From
     ``k`` = :data:`LAPACK_PARALLEL_MIN` up the work per region is large enough for the second
-    core to pay: wall time of ``eigh`` on an idle 2-core VM, one thread against two, 441²
-    0.024 / 0.025 s, 625² 0.056 / 0.036, 1024² 0.26 / 0.15, 1681² 1.1–1.25 / 0.61 (session 12;
-    the one-view glossy fits solve at 1681 columns). The thread count is per process;
-    nothing else runs while it is lowered.
+    core to pay. Session 12 put that order at 600 from ``eigh`` timed in a process without
+    ``import brdfcap`` (idle 2-core VM, one thread against two: 625² 0.056 / 0.036 s, 1024²
+    0.26 / 0.15). With it — ``OMP_WAIT_POLICY=PASSIVE``, so each of LAPACK's parallel regions
+    wakes the second thread — two threads lose up to about 1400 (session 15, idle VM: 441²
+    0.026 / 0.064 s, 625² 0.059 / 0.126, 841² 0.14 / 0.22, 1024² 0.28–0.30 / 0.32–0.37, 1200²
+    0.36–0.39 / 0.41–0.42, 1444² 0.59–0.67 / 0.56–0.61, 1681² 1.44 / 0.82): the 309k-sample
+    Phong ``rh`` fit's eight 625² decompositions 1.0 → 0.5 s. The thread count is per
+    process; nothing else runs while it is lowered.
     """
     threads = torch.get_num_threads()
     if threads == 1 or k >= LAPACK_PARALLEL_MIN:
