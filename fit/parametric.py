@@ -302,7 +302,8 @@ SHAPE_STEP = 1e-4
 def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.Tensor,
                            light_sh: torch.Tensor, variance: torch.Tensor | None = None,
                            model: str = "phong", bounds: tuple[float, float] | None = None,
-                           checks: bool = True, max_bytes: int | None = None) -> ParametricFit:
+                           checks: bool = True, max_bytes: int | None = None,
+                           tau2_start: torch.Tensor | None = None) -> ParametricFit:
     r"""Fit a parametric BRDF to samples under known SH environment lighting.
 
     The forward model is the reflection equation itself (R&H 2001 eq. 1), not its
@@ -446,43 +447,61 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
         rounds = []
         used_tau2 = torch.zeros(b.shape[1], dtype=torch.float64)
         settled = True
-        for _ in range(TRUNCATION_ROUNDS + 1):
-            t = _power_above(fit.spec, nf, rf, k, lighting)
-            est, gain, raw = _truncation_scale(bf - fit.prediction, vf, t, wf > 0, bound)
-            rounds.append([round(float(x), 6) for x in est.tolist()])
-            if (len(rounds) > 1 and _settled(est, used_tau2)) or \
-                    (len(rounds) == 1 and not (est > 0).any()):
-                break
-            if len(rounds) == TRUNCATION_ROUNDS + 1:
-                settled = False
-                break
-            used_tau2 = est
-            var2 = vf + used_tau2[None, :] * t
+
+        def refit(tau2_):
+            var2 = vf + tau2_[None, :] * t
             w2 = noise_weights(bf, var2)[0] * (wf > 0)
-            dom = int(((used_tau2[None, :] * t > vf) & (wf > 0)).any(-1).sum())
-            if (used_tau2 > 0).any():
+            dom_ = int(((tau2_[None, :] * t > vf) & (wf > 0)).any(-1).sum())
+            if (tau2_ > 0).any():
                 src2 = (f"{src}; plus the lighting above l = {k} (the known lighting's last "
                         f"band) as noise, tau^2 t_p with t_p each sample's kernel power above "
-                        f"l = {k} and tau^2 = {', '.join(f'{x:.3g}' for x in used_tau2.tolist())}"
+                        f"l = {k} and tau^2 = {', '.join(f'{x:.3g}' for x in tau2_.tolist())}"
                         f" by maximum likelihood from the residual (refitted until it settles): "
-                        f"{dom} of {nused} samples (the lobes the horizon cuts) have it above "
+                        f"{dom_} of {nused} samples (the lobes the horizon cuts) have it above "
                         f"their pixel noise")
             else:
                 src2 = src
             th = float(fit.values[proto.shape_parameter])
             coarse2 = None if coarse is None else (coarse[0], coarse[1], w2[idx])
-            fit = _variable_projection(model, proto, basis, shape_derivative, bf, w2, True,
+            new = _variable_projection(model, proto, basis, shape_derivative, bf, w2, True,
                                        src2, (th / math.e, th * math.e), checks,
                                        coarse=coarse2, xatol=1e-7, grid_points=9)
-            fit.variance = var2
+            new.variance = var2
+            return new, dom_
+
+        # a second solve of the same problem (the noise reweighting) starts from the first
+        # solve's settled tau^2: the first fit's residual, weighted by the pixel noise alone,
+        # would overstate it again and cost the rounds back down
+        started = tau2_start is not None and tau2_start.numel() == b.shape[1] and bool(
+            (torch.as_tensor(tau2_start, dtype=torch.float64) > 0).any())
+        if started:
+            t = _power_above(fit.spec, nf, rf, k, lighting)
+            used_tau2 = torch.minimum(torch.as_tensor(tau2_start, dtype=torch.float64).cpu(),
+                                      bound).clamp_min(0.0)
+            fit, dom = refit(used_tau2)
+        for _ in range(TRUNCATION_ROUNDS + 1):
+            t = _power_above(fit.spec, nf, rf, k, lighting)
+            est, gain, raw = _truncation_scale(bf - fit.prediction, vf, t, wf > 0, bound)
+            rounds.append([round(float(x), 6) for x in est.tolist()])
+            if ((len(rounds) > 1 or started) and _settled(est, used_tau2)) or \
+                    (len(rounds) == 1 and not started and not (est > 0).any()):
+                break
+            if len(rounds) == TRUNCATION_ROUNDS + 1:
+                settled = False
+                break
+            used_tau2 = est
+            fit, dom = refit(used_tau2)
         applied = bool((used_tau2 > 0).any())
+        used_tau2_start = None if not started else [
+            float(x) for x in torch.as_tensor(tau2_start, dtype=torch.float64).tolist()]
         over = (raw > bound) & (raw > 0)
         extra["truncation"] = {"tau2": used_tau2.tolist(), "log_likelihood_gain": gain.tolist(),
                                "applied": applied, "tau2_rounds": rounds,
                                "bound": [float(x) if math.isfinite(x) else None
                                          for x in bound.tolist()],
                                "exceeds_bound": over.tolist(),
-                               "tau2_unbounded": raw.tolist(), "settled": settled}
+                               "tau2_unbounded": raw.tolist(), "settled": settled,
+                               "tau2_start": used_tau2_start}
         if applied:
             extra["truncation"]["samples_above_noise"] = dom
             tau2 = used_tau2

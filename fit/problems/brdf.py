@@ -95,9 +95,16 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     # equation under the known lighting; the radial filter above stays as the measurement
     # that assumes no model (issue 12: "always show the measured rho_l")
     def fit_at(lighting):
+        # a second solve at the band the first one settled its truncation variance at starts
+        # from that tau^2 (FitResult.restart)
+        st = opts.start or {}
+        k_at = int(math.isqrt(lighting.shape[0])) - 1
+        tau2 = (torch.as_tensor(st["truncation_tau2"], dtype=torch.float64)
+                if st.get("truncation_lmax") == k_at and st.get("truncation_tau2") is not None
+                else None)
         return fit_brdf_parametric_sh(samples.normal, samples.wo, samples.radiance, lighting,
                                       samples.variance, model=model,
-                                      bounds=_search_bounds(model, opts))
+                                      bounds=_search_bounds(model, opts), tau2_start=tau2)
 
     k0 = int(math.isqrt(light.shape[0])) - 1
     start = _start_spec(model, opts)
@@ -138,8 +145,11 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
         [s.replace("Problem 2 (inverse BRDF, known SH lighting): ", "Measured, no model: ")
          for s in summ]
     est = _parametric_estimates(par) + [est[0]]
+    tr = par.extra.get("truncation") or {}
+    restart = ({"truncation_tau2": tr["tau2"], "truncation_lmax":
+                int(par.extra["lighting_lmax"])} if tr.get("applied") else {})
     return FitResult("brdf", est, par.prediction, rec, summary=summ, warnings=warns,
-                     bands={"brdf": fit.bands})
+                     bands={"brdf": fit.bands}, restart=restart)
 
 
 def _widen(par, factor: float) -> None:

@@ -248,34 +248,68 @@ def test_a_wrong_model_is_told_apart_from_truncation(tmp_path):
 PISA = reference_dir(Path(__file__).resolve().parents[2]) / "probes" / "pisa.hdr"
 
 
-@pytest.mark.skipif(not PISA.is_file(), reason=f"shared reference probe not present ({PISA})")
-def test_a_probe_is_projected_to_the_bands_the_fitted_lobe_passes(tmp_path):
-    """A capture whose known lighting is a probe file (no ``probe_lmax``): the pipeline's
-    default projection (``--brdf-lmax`` 8) is below what a Beckmann σ = 0.2 lobe passes
-    (l* = 11), so the parametric fit asks for ``ceil(1.25 l*)`` = 14 bands, says so in the
-    notes and gives no warning; the second (reweighted) solve starts there. Rendered by the
-    reference renderer from the probe itself (Pisa), one view of 40².
+@pytest.fixture(scope="module")
+def pisa_capture(tmp_path_factory):
+    """A Beckmann σ = 0.2 sphere rendered by the reference renderer from the Pisa probe itself
+    (one view of 40², 1% relative noise); the capture names the probe file, not coefficients.
     """
+    if not PISA.is_file():
+        pytest.skip(f"shared reference probe not present ({PISA})")
+    d = tmp_path_factory.mktemp("pisa")
     light = f'kind = "environment"\nprobe = "{PISA}"\nprobe_lmax = 32\nknown = true'
-    (tmp_path / "s.toml").write_text(scene_text(
+    (d / "s.toml").write_text(scene_text(
         name="beckmann sphere under pisa", width=40, views=1, material=BECKMANN, lighting=light,
         noise=NOISE, tail="[render]\nspp = 1\nrel_tol = 3e-3\n"))
-    cap = simulate(tmp_path / "s.toml", tmp_path / "cap")
-    shutil.copy(PISA, cap / "pisa.hdr")  # the capture names the probe, not its coefficients
+    cap = simulate(d / "s.toml", d / "cap")
+    shutil.copy(PISA, cap / "pisa.hdr")
     toml = (cap / "capture.toml").read_text()
     toml = re.sub(r"(?m)^coefficients = .*$", 'probe = "pisa.hdr"', toml)
     (cap / "capture.toml").write_text(toml)
-    out = tmp_path / "o"
+    return cap
+
+
+def _run_brdf(cap, out) -> dict:
     res = CliRunner().invoke(main, ["run", str(cap), "--out", str(out), "--problem", "brdf",
                                     "--brdf", "beckmann"])
     assert res.exit_code == 0, res.output
-    r = json.loads((out / "results.json").read_text())
+    return json.loads((out / "results.json").read_text())
+
+
+@pytest.mark.xdist_group("pisa-beckmann-capture")  # one render, one worker
+def test_a_probe_is_projected_to_the_bands_the_fitted_lobe_passes(pisa_capture, tmp_path):
+    """A capture whose known lighting is a probe file (no ``probe_lmax``): the pipeline's
+    default projection (``--brdf-lmax`` 8) is below what a Beckmann σ = 0.2 lobe passes
+    (l* = 11), so the parametric fit asks for ``ceil(1.25 l*)`` = 14 bands, says so in the
+    notes and gives no warning; the second (reweighted) solve starts there.
+    """
+    r = _run_brdf(pisa_capture, tmp_path / "o")
     assert r["brdf"]["parametric"]["lighting_lmax"] == 14
     assert any("projected to l = 14" in n and "l* = 11" in n for n in r["fit_notes"])
     assert not any("--brdf-lmax" in w for w in r.get("warnings", [])), r.get("warnings")
     z = [v for row in r["ground_truth"]["brdf"] for v in row["z"]]
     assert max(abs(v) for v in z) < 4, z
     assert r["adequacy"]["adequate"], r["adequacy"]  # Pisa at K = 14: nothing to widen
+
+
+@pytest.mark.xdist_group("pisa-beckmann-capture")
+def test_the_reweighted_solve_starts_from_the_first_truncation_variance(pisa_capture,
+                                                                         tmp_path):
+    """The same capture stating ``probe_lmax = 6`` (the lobe passes l* = 11): the lighting above
+    6 enters as the truncation variance τ², settled over refits in the first solve. The second
+    (noise-reweighted) solve starts from that τ² (``FitResult.restart``) and settles at its
+    first estimate instead of re-estimating it from the pixel-noise fit's residual.
+    """
+    cap = tmp_path / "cap"
+    shutil.copytree(pisa_capture, cap)
+    toml = (cap / "capture.toml").read_text()
+    (cap / "capture.toml").write_text(toml.replace('probe = "pisa.hdr"',
+                                                   'probe = "pisa.hdr"\nprobe_lmax = 6'))
+    r = _run_brdf(cap, tmp_path / "o")
+    tr = r["brdf"]["parametric"]["truncation"]
+    assert r["brdf"]["parametric"]["lighting_lmax"] == 6 and tr["applied"], tr
+    assert tr["tau2_start"] is not None and len(tr["tau2_rounds"]) == 1 and tr["settled"], tr
+    start, got = np.asarray(tr["tau2_start"]), np.asarray(tr["tau2"])
+    assert np.all(np.abs(np.log(got / start)) <= math.log(1.25)), (start, got)
 
 
 def test_a_structured_residual_widens_the_parametric_errors():
