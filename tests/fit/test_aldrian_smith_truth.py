@@ -256,13 +256,13 @@ def _free_fit(albedo: torch.Tensor, seed: int = 0):
 
 
 def test_free_albedo_bands_set_by_the_smoothness_prior_are_not_called_determined(one_thread):
-    """A uniform Phong-lobed sphere (3 views, quadrature render), free albedo: a smooth albedo
-    gradient and the lighting's low bands are confounded on a sphere, and the specular lobe
-    does not separate them here — the evidence is flat over the smoothness weights 10–1000.
-    Bands 1–2 come out ~45% off (after the per-channel gauge on L_00); before, the fit's prior
-    covariance called them determined at 5–10 std. errors. Now the data's share of their
-    precision (< 0.5 against the prior 100× weaker) says the prior set them: not determined,
-    no interval, and the band table says why; L_00 is confounded with the specular DC.
+    """A uniform Phong-lobed sphere (3 views, quadrature render), free albedo. The evidence is
+    flat over the smoothness weights 10–1000 (10 chosen); relative to L_00 bands 1–2 come out
+    ~45% off — mostly L_00's confound with the specular DC (κ_0 is pinned at 0), 15% relative
+    to each other; before (fixed weight 0.1) 64–67% off, and every band called determined.
+    Now the data's share of bands 1–2's precision (< 0.5 against the smoothness prior 100×
+    weaker) says that prior sets them: not determined, no interval, the band table says why;
+    L_00 is not called determined either (the specular DC).
     """
     f = _free_fit(torch.tensor([0.5, 0.45, 0.4], dtype=F64))
     assert f.priors["smoothness_rule"].startswith("evidence")
