@@ -291,6 +291,7 @@ def test_a_probe_is_projected_to_the_bands_the_fitted_lobe_passes(pisa_capture, 
     assert r["adequacy"]["adequate"], r["adequacy"]  # Pisa at K = 14: nothing to widen
 
 
+@pytest.mark.slow  # 18 s: a cost saving, not a number a user reads
 @pytest.mark.xdist_group("pisa-beckmann-capture")
 def test_the_reweighted_solve_starts_from_the_first_truncation_variance(pisa_capture,
                                                                          tmp_path):
