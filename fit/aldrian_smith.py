@@ -595,7 +595,8 @@ class AldrianSmithFit:
             "brdf": {"model": "aldrian-smith", "parameters": {
                 "albedo_mean": self.albedo.mean(0).tolist(),
                 "specular_kappa": kv},
-                "stderr": {"specular_kappa": kse}},
+                "stderr": {"specular_kappa": kse},
+                "parameter_axes": {"specular_kappa": "band"}},
             "ambiguities": self.ambiguities}
 
     def summary(self) -> list[str]:

@@ -229,11 +229,18 @@ def brdf_parameter_rows(brdf: dict) -> list[tuple[str, str]]:
     """``(name, value ± error)`` per BRDF parameter; arrays summarised, strings as text."""
     params = brdf.get("parameters") or {}
     errs = _param_errors(brdf)
+    axes = brdf.get("parameter_axes") or {}
     rows = []
     for k, v in params.items():
         if k.endswith("_stderr") and k[: -len("_stderr")] in params:
             continue  # shown as the ± of its parameter
-        if _is_num(v) or is_number_list(v):
+        if axes.get(k) == "band" and isinstance(v, (list, tuple)):
+            # indexed by band l, not by colour channel (aldrian-smith's κ_l)
+            e = list(errs.get(k) or []) + [None] * len(v)
+            rows.append((k, ", ".join(
+                f"l = {i}: " + ("not determined" if a is None else fmt_pm(a, e[i]))
+                for i, a in enumerate(v))))
+        elif _is_num(v) or is_number_list(v):
             rows.append((k, fmt_rgb_pm(v, errs.get(k))))
         elif isinstance(v, str):
             rows.append((k.replace("_", " "), v))

@@ -103,3 +103,19 @@ def test_a_channel_scale_gauge_is_one_factor_per_channel():
     res["ambiguities"][0]["gauge"] = "channel scale"
     res["lighting"]["coefficients"][1][0] *= 1.2
     assert truth_comparison(res, truth)["lighting"]["bands"][1]["max_abs_z"] > 5
+
+
+def test_a_per_band_parameter_is_not_labelled_by_colour_channel():
+    """``aldrian-smith``'s κ_l (three values, one per band l = 0, 1, 2) were shown as "R …, G …,
+    B …" in the report's BRDF table; ``parameter_axes`` says they are per band, and κ_0 left
+    undetermined (a free albedo) reads so.
+    """
+    from brdfcap.reports.views import brdf_parameter_rows
+
+    brdf = {"model": "aldrian-smith",
+            "parameters": {"albedo_mean": [0.6, 0.5, 0.4], "specular_kappa": [None, 0.3, 0.25]},
+            "stderr": {"specular_kappa": [None, 0.01, 0.02]},
+            "parameter_axes": {"specular_kappa": "band"}}
+    rows = dict(brdf_parameter_rows(brdf))
+    assert rows["specular_kappa"].startswith("l = 0: not determined, l = 1: 0.30")
+    assert "R " not in rows["specular_kappa"] and rows["albedo_mean"].startswith("R 0.6")
