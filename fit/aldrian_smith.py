@@ -497,6 +497,14 @@ class AldrianSmithFit:
     #: ``(θ, albedo, prior scale d)`` at the optimum: the warm start of an evidence search
     _state: tuple | None = field(default=None, repr=False)
 
+    def smoothness_chosen(self, rule: str, detail: str = "") -> None:
+        """Record how the free albedo's smoothness weight was chosen (``priors``, albedo model)."""
+        w = self.priors["smoothness"]
+        self.priors["smoothness_rule"] = rule
+        self.albedo_model = self.albedo_model.replace(
+            f"(weight {w:g})", f"(weight {w:g}, chosen by the evidence"
+            + (f" {detail})" if detail else ")"))
+
     def _kappa_out(self) -> tuple[list, list]:
         """κ_l and their standard errors for results.json, ``None`` where not determined."""
         det = (torch.ones_like(self.specular_low, dtype=torch.bool)
@@ -915,9 +923,13 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
             return (simplicity + 1e-12) * float(d) * torch.eye(A, dtype=_F64)
         if d is None:  # the mean data precision of one albedo value (the prior's unit)
             d = float(free_blocks(shade, w).diagonal().sum() / max(3 * int(ok.sum()), 1))
-        blk = smoothness * d * lap + albedo_prior * d * sp.identity(N)
+        blk = albedo_precision(smoothness, d)
         prior_block[:] = [blk, d]
         return sp.block_diag([blk] * 3, format="csc")
+
+    def albedo_precision(weight, d):
+        """Free albedo: one channel's prior precision, smoothness ``weight`` and level prior."""
+        return weight * d * lap + albedo_prior * d * sp.identity(N)
 
     def cost(th_, ta_):
         p_, _, _ = model(th_, ta_)
@@ -1021,6 +1033,7 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
             Ha = Haa + damp * torch.diag(torch.diagonal(Haa))
         else:
             Ha = (Haa + damp * sp.diags(Haa.diagonal())).tocsc()
+        lu = None
         if texture:
             X = torch.linalg.solve(Ha, Hga.T)
             sol = solve_aa
@@ -1034,7 +1047,7 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
         z = sol(Ha, ra)
         dg = torch.linalg.solve(Sg, rg - Hga @ z)
         dA = z - X @ dg
-        return dg, dA, Sg, X, Ha
+        return dg, dA, Sg, X, Ha, lu
 
     for _ in range(refine_iter):
         Hgg, rg, Haa, ra, Hga, _, _ = system(th, ta)
@@ -1055,7 +1068,7 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
 
     # ---- posterior covariance ----
     Hgg, rg, Haa, ra, Hga, Jg, ja = system(th, ta)
-    dg, dA, Sg, X, Ha = joint_solve(Hgg, Haa, Hga, rg, ra, 0.0)
+    dg, dA, Sg, X, Ha, lu_aa = joint_solve(Hgg, Haa, Hga, rg, ra, 0.0)
     pred_y, shade, alb = model(th, ta)
     rss = float((w * (y - pred_y @ Mm.T - off) ** 2).sum())
     n_obs = 3 * int(ok.sum())
@@ -1073,8 +1086,8 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     weak_var = None
     if not texture:
         # the same optimum, the albedo's smoothness prior WEAK_PRIOR_FACTOR times weaker
-        pw = sp.block_diag([smoothness * WEAK_PRIOR_FACTOR * prior_block[1] * lap
-                            + albedo_prior * prior_block[1] * sp.identity(N)] * 3, format="csc")
+        pw = sp.block_diag([albedo_precision(smoothness * WEAK_PRIOR_FACTOR, prior_block[1])] * 3,
+                           format="csc")
         ha_w = (free_blocks(shade, w) + pw).tocsc()
         lu_w = spla.splu(ha_w)
         x_w = torch.as_tensor(lu_w.solve(np.asarray(Hga.T)))
@@ -1126,7 +1139,7 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
         share[observ] = (torch.diagonal(cov_g) / vw)[iL].reshape(3, ko).T.clamp(0.0, 1.0)
     log_ev = None
     if not texture:
-        log_ev = _laplace_log_evidence(cost(th, ta), Ha, Sg, prior_block[0], n_obs,
+        log_ev = _laplace_log_evidence(cost(th, ta), lu_aa, Sg, prior_block[0], n_obs,
                                        variance is not None)
     L, kap, xh = unpack(th)
     K = (lmax + 1) ** 2
@@ -1225,23 +1238,23 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
         _state=(th.clone(), ta.clone(), prior_block[1]))
 
 
-def _logdet_sparse(a) -> float:
-    """``log |det a|`` of a sparse square matrix (SuperLU: ``|det| = Π |U_ii|``)."""
-    lu = spla.splu(sp.csc_matrix(a))
+def _logdet_lu(lu) -> float:
+    """``log |det A|`` from a SuperLU factorisation of ``A`` (``|det| = Π |U_ii|``)."""
     return float(np.log(np.abs(lu.U.diagonal())).sum())
 
 
-def _laplace_log_evidence(cost: float, Ha, Sg: torch.Tensor, prior_block, n_obs: int,
+def _laplace_log_evidence(cost: float, lu_aa, Sg: torch.Tensor, prior_block, n_obs: int,
                           noise_known: bool) -> float:
     """Laplace log marginal likelihood of the free-albedo smoothness, up to a constant.
 
     ``−½ C + ½ log det P_a − ½ log det H`` (MacKay 1992, eq. 2.20 with the Hessian at the
     optimum), ``C`` the cost at the optimum, ``P_a`` the albedo's prior precision (3 identical
     channel blocks) and ``log det H = log det H_aa + log det S`` (the Schur complement of the
-    global block). Without a noise model the variance is profiled (``σ² = C / n``).
+    global block; ``lu_aa`` the SuperLU factorisation of ``H_aa`` the covariance's solve
+    made). Without a noise model the variance is profiled (``σ² = C / n``).
     """
-    ld_h = _logdet_sparse(Ha) + float(torch.linalg.slogdet(Sg)[1])
-    ld_p = 3.0 * _logdet_sparse(prior_block)
+    ld_h = _logdet_lu(lu_aa) + float(torch.linalg.slogdet(Sg)[1])
+    ld_p = 3.0 * _logdet_lu(spla.splu(sp.csc_matrix(prior_block)))
     if noise_known:
         return -0.5 * cost + 0.5 * (ld_p - ld_h)
     s2 = max(cost / max(n_obs, 1), 1e-300)
@@ -1282,12 +1295,10 @@ def _fit_smoothness_by_evidence(args: dict) -> AldrianSmithFit:
     best = max(g.log_evidence for _, g in fits)
     lam, f = min(((lam_, g) for lam_, g in fits if g.log_evidence >= best - EVIDENCE_TIE),
                  key=lambda t: t[0])
-    f.priors["smoothness_rule"] = ("evidence (Laplace marginal likelihood; the weakest weight "
-                                   f"within {EVIDENCE_TIE:g} nat of the best)")
+    f.smoothness_chosen("evidence (Laplace marginal likelihood; the weakest weight within "
+                        f"{EVIDENCE_TIE:g} nat of the best)",
+                        "from " + ", ".join(f"{x:g}" for x, _ in fits))
     f.priors["smoothness_evidence"] = [[lam_, g.log_evidence] for lam_, g in fits]
-    f.albedo_model = f.albedo_model.replace(
-        f"(weight {lam:g})", f"(weight {lam:g}, chosen by the evidence from "
-        f"{', '.join(f'{x:g}' for x, _ in fits)})")
     return f
 
 
@@ -1311,7 +1322,7 @@ def fit_aldrian_smith_samples(samples, lmax: int = 2, colour=None, texture=None,
                               simplicity: float = 1e-3, refine_iter: int = 25,
                               rule: str | None = None,
                               smoothness: float | str = "evidence") -> AldrianSmithFit:
-    """Pipeline entry: per-pixel samples, grayworld prior on.
+    """Pipeline entry: per-pixel samples; the grayworld prior on with a free albedo.
 
     Free albedo with the smoothness prior (``smoothness``: a weight, or ``"evidence"``) unless
     a texture model ``(mean (N, 3), components (P, N, 3))`` is given; ``colour`` as in

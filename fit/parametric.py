@@ -472,12 +472,12 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
         # a second solve of the same problem (the noise reweighting) starts from the first
         # solve's settled tau^2: the first fit's residual, weighted by the pixel noise alone,
         # would overstate it again and cost the rounds back down
-        started = tau2_start is not None and tau2_start.numel() == b.shape[1] and bool(
-            (torch.as_tensor(tau2_start, dtype=torch.float64) > 0).any())
+        t0 = None if tau2_start is None else torch.as_tensor(tau2_start,
+                                                             dtype=torch.float64).cpu()
+        started = t0 is not None and t0.numel() == b.shape[1] and bool((t0 > 0).any())
         if started:
             t = _power_above(fit.spec, nf, rf, k, lighting)
-            used_tau2 = torch.minimum(torch.as_tensor(tau2_start, dtype=torch.float64).cpu(),
-                                      bound).clamp_min(0.0)
+            used_tau2 = torch.minimum(t0, bound).clamp_min(0.0)
             fit, dom = refit(used_tau2)
         for _ in range(TRUNCATION_ROUNDS + 1):
             t = _power_above(fit.spec, nf, rf, k, lighting)
@@ -492,8 +492,7 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
             used_tau2 = est
             fit, dom = refit(used_tau2)
         applied = bool((used_tau2 > 0).any())
-        used_tau2_start = None if not started else [
-            float(x) for x in torch.as_tensor(tau2_start, dtype=torch.float64).tolist()]
+        used_tau2_start = t0.tolist() if started else None
         over = (raw > bound) & (raw > 0)
         extra["truncation"] = {"tau2": used_tau2.tolist(), "log_likelihood_gain": gain.tolist(),
                                "applied": applied, "tau2_rounds": rounds,

@@ -65,12 +65,11 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
                     note + "; kappa_0 not determined with a free albedo (set to 0, the albedo "
                     "carries the specular DC)")]
     if smooth != "evidence":
-        res.priors["smoothness_rule"] = ("evidence, chosen on the first solve and kept for the "
-                                         "solve with the noise variance at its prediction")
-        res.albedo_model = res.albedo_model.replace(
-            f"(weight {smooth:g})", f"(weight {smooth:g}, chosen by the evidence)")
-    restart = ({"albedo_smoothness": res.priors["smoothness"]} if texture is None
-               and res.priors.get("smoothness") is not None else {})
+        res.smoothness_chosen("evidence, chosen on the first solve and kept for the solve with "
+                              "the noise variance at its prediction")
+    # the smoothness is None with a texture model (no free albedo)
+    restart = ({} if res.priors.get("smoothness") is None
+               else {"albedo_smoothness": res.priors["smoothness"]})
     return FitResult("aldrian-smith", est, res.prediction, res.to_results(),
                      summary=res.summary(), ambiguities=list(res.ambiguities), restart=restart)
 
