@@ -112,9 +112,12 @@ def _render(tmp_path, name, lighting, inter):
     return img, gt
 
 
-def _points_on_a(tmp_path):
-    """World points and a mask of the pixels that see face A away from its edges."""
-    sc = load_scene(tmp_path / "on.toml")
+def _points_on_a(tmp_path, name):
+    """World points and a mask of the pixels that see face A away from its edges.
+
+    ``name``: the scene this test wrote (a test may run alone, or on another xdist worker).
+    """
+    sc = load_scene(tmp_path / f"{name}.toml")
     mesh = load_mesh(tmp_path / "corner.ply")
     centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
     pose = view_poses(1, sc.distance, sc.elevation_deg, centre)[0]
@@ -140,7 +143,7 @@ def test_directional_light_indirect_gain_matches_view_factor(corner):
     assert gt_on["interreflection"]["applied"] and gt_on["interreflection"]["rays"] > 0
     assert not gt_off["interreflection"]["applied"]
     assert "interreflection:1-bounce" not in gt_off["effects"]
-    p, on_a = _points_on_a(corner)
+    p, on_a = _points_on_a(corner, "on")
     assert on_a.sum() > 30
     delta = (on - off)[on_a][:, 1]
     e0, c45 = 2.0, math.cos(math.radians(45.0))
@@ -155,7 +158,7 @@ def test_directional_light_indirect_gain_matches_view_factor(corner):
 def test_white_furnace_loses_energy_by_the_view_factor(corner):
     off, _ = _render(corner, "foff", FURNACE, False)
     on, gt = _render(corner, "fon", FURNACE, True)
-    p, on_a = _points_on_a(corner)
+    p, on_a = _points_on_a(corner, "fon")
     np.testing.assert_allclose(off[on_a], KD, rtol=1e-3)   # unoccluded furnace: kd L0
     f = np.array([_view_factor_to_b(x, y) for x, y in p[on_a][:, :2]])
     expected = -KD * f * (1 - KD)

@@ -65,9 +65,9 @@ def test_lambertian_lmax20_odd_bands_unobservable():
 
 
 @pytest.mark.parametrize("spec,lmax,ill_expected,samples", [
-    (BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=1e4), 8, None, 2000),   # near mirror
+    (BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=1e4), 8, None, 1000),   # near mirror
     (BRDFSpec("phong", kd=[0, 0, 0], ks=[1, 1, 1], s=1.0), 6, 3, 2000),      # clamped cosine
-    (BRDFSpec("microfacet", kd=[0, 0, 0], f0=[1, 1, 1], sigma=0.01), 8, None, 2000),
+    (BRDFSpec("microfacet", kd=[0, 0, 0], f0=[1, 1, 1], sigma=0.01), 8, None, 1000),
     (BRDFSpec("microfacet", kd=[0, 0, 0], f0=[1, 1, 1], sigma=1.0), 8, "early", 600),
 ])
 def test_extreme_lobes(spec, lmax, ill_expected, samples):

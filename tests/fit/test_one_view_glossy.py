@@ -31,7 +31,9 @@ from brdfcap.truth_matrix import BRDFS, render_texels, rendered, score
 PROBES = reference_dir(Path(__file__).resolve().parents[2]) / "probes"
 needs_probes = pytest.mark.skipif(not (PROBES / "grace.hdr").is_file(),
                                   reason=f"reference light probes not found under {PROBES}")
-pytestmark = [needs_probes, pytest.mark.usefixtures("one_thread")]
+# one worker for the module: its fixture (a render and a fit, ~20 s) is built once
+pytestmark = [needs_probes, pytest.mark.usefixtures("one_thread"),
+              pytest.mark.xdist_group("one-view-glossy")]
 
 
 def _data(request, name: str) -> dict:

@@ -31,6 +31,9 @@ DIR = ('kind = "directional"\n[[lighting.lights]]\ndirection = [1.0, 0.3, 0.5]\n
        '[[lighting.lights]]\ndirection = [-0.4, 0.8, 0.6]\n'
        '[[lighting.lights]]\ndirection = [0.2, -0.9, 0.4]')
 
+# one worker for the module: the reports fixture (nine runs, ~20 s) is built once
+pytestmark = pytest.mark.xdist_group("report-scan")
+
 #: Words of the code, not of the reader (issue #16).
 INTERNAL = ["Seed prediction", "predicted (seed)", "l* (real)", "seed filter",
             "beyond l = -1", "kd=1)"]
