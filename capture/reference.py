@@ -96,16 +96,16 @@ Environment lighting (:func:`render_environment`)
       across the horizon's kink (6 views of 64² under a probe projected to ``l = 8``: 20 s →
       0.1 s). A rule of one order more is the error estimate. It is not R&H 2001 eq. 13 (the
       Lambertian filter ``Â_l`` the fits use): only point values of ``L`` enter.
-    * **Irradiance map** (Lambertian term, ≥ 1024 pixels, ``rel_tol ≥ 1e-4``, non-negative
-      probe): the texels above the 33rd-brightest value (when ≥ 10× the mean) are split off
-      as tents (their bilinear basis functions) and integrated per pixel with ``4 × 4``
-      sub-cells per quadrant (error estimate against ``2 × 2``); the clamped rest gives the
-      irradiance on a grid of normals (rows ``θ_i = π i/(R−1)``, poles included, × the
-      sub-cell columns) by the same texel sums as above, done per row as a circular
-      convolution over ``φ`` by FFT; pixels interpolate it (Keys cubic; taps past a pole
-      continue on the opposite meridian). On 256 pixels the map is checked against direct
-      quadrature: the order ``k`` by the Richardson estimate, the rows ``R = 65 … 513`` until
-      the interpolation error is below half the tolerance. Reported per term.
+    * **Irradiance map** (Lambertian term, ≥ 1024 pixels — 2048 above 65536 texels —, ``rel_tol ≥
+      1e-4``, non-negative probe): the texels above the 33rd-brightest value (when ≥ 10× the mean)
+      are split off as tents (their bilinear basis functions) and integrated per pixel with ``4 ×
+      4`` sub-cells per quadrant (error estimate against ``2 × 2``); the clamped rest gives the
+      irradiance on a grid of normals (rows ``θ_i = π i/(R−1)``, poles included, × the sub-cell
+      columns) by the same texel sums as above, done per row as a circular convolution over ``φ`` by
+      FFT; pixels interpolate it (Keys cubic; taps past a pole continue on the opposite meridian).
+      On 256 pixels the map is checked against direct quadrature: the order ``k`` by the Richardson
+      estimate, the rows ``R = 65 … 513`` until the interpolation error is below half the tolerance.
+      Reported per term.
 
     The tolerance: per pixel, estimated error ≤ ``rel_tol · max(B⁺, floor)`` where ``B⁺`` is
     the same integral of ``|L|`` (``= B`` for any real, non-negative probe; for an SH
@@ -126,6 +126,7 @@ float64).
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import torch
@@ -535,7 +536,8 @@ def _lobe_check(model: BRDFModel, normal, wo, probe: LatLongProbe, out, floor, n
 
 def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
                        rel_tol: float = 1e-3, max_samples: int = DEFAULT_MAX_SAMPLES,
-                       seed: int = 0, return_info: bool = False, method: str = "auto"):
+                       seed: int = 0, return_info: bool = False, method: str = "auto",
+                       cache: dict | None = None):
     r"""Reflected radiance under a lat-long probe by numerical integration (module doc).
 
     Parameters
@@ -563,6 +565,10 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
         a texel ≥ 10× its mean (sun-like sources), the per-pixel rules otherwise;
         ``"cells"``: cell quadrature for every sampled lobe; ``"quadrature"``: the
         per-pixel texel and lobe quadratures only (module doc).
+    cache : dict, optional
+        A dict kept by the caller for one probe across calls (e.g. the views of a capture):
+        the cell quadrature's pyramid is built once (~10 µs a texel) and reused while the
+        probe's image is the same tensor, unchanged.
 
     Returns
     -------
@@ -581,7 +587,10 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
     kd = m.kd.to(normal.device)
     if kd.numel() not in (1, c):
         raise ValueError(f"model has {kd.numel()} colour channels, probe has {c}")
-    use_map = (method != "quadrature" and n_pix >= _MAP_MIN_PIXELS and p.width % 2 == 0
+    # the map's own cost grows with the probe faster than the texel sums' (512 × 1024, 900
+    # pixels: map 66 s, texels 16 s): above 65536 texels it waits for twice the pixels
+    map_min = _MAP_MIN_PIXELS * (1 if p.height * p.width <= _CELLS_TEXELS_PER_PIXEL else 2)
+    use_map = (method != "quadrature" and n_pix >= map_min and p.width % 2 == 0
                and rel_tol >= _MAP_MIN_TOL and bool((p.image >= 0).all()))
     if bool((kd != 0).any()) and p.sh is not None and method != "quadrature":
         e = irradiance_sh_rule(normal, p)
@@ -621,7 +630,7 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
                                                  device=normal.device)) if n_pix else None
             if trial is not None and _use_cells(m, normal, wo, p, method, rel_tol):
                 s, inf = (_cells_by_view if method == "auto" else _cells_specular)(
-                    m, normal, wo, p, rel_tol, floor)
+                    m, normal, wo, p, rel_tol, floor, pyr=_pyramid_cached(p, cache))
             elif trial is not None or n_pix == 0:
                 s, inf = _sampled_specular(m, normal, wo, p, rel_tol, max_samples, floor)
             else:
@@ -856,6 +865,19 @@ class _Pyramid:
     radius: list[torch.Tensor]     # per level (Hl·Wl,)
     shapes: list[tuple[int, int]]
     k: int
+
+
+def _pyramid_cached(p: LatLongProbe, cache: dict | None) -> _Pyramid:
+    """Return the probe's pyramid, from ``cache`` if it holds one of this (unchanged) image."""
+    if cache is None:
+        return _pyramid(p, _PYRAMID_K)
+    rot = None if p.rotation is None else tuple(p.rotation.reshape(-1).tolist())
+    key = (p.image.data_ptr(), p.image._version, tuple(p.image.shape), str(p.image.device),
+           p.interpolation, rot, _PYRAMID_K)
+    hit = cache.get("pyramid")
+    if hit is None or hit[0] != key or hit[1]() is not p.image:
+        cache["pyramid"] = hit = (key, weakref.ref(p.image), _pyramid(p, _PYRAMID_K))
+    return hit[2]
 
 
 def _pyramid(p: LatLongProbe, k: int = 4, top_cells: int = 128) -> _Pyramid:
@@ -1224,7 +1246,8 @@ def _grid_view(model: BRDFModel, normal, v, pyr: _Pyramid, rel_tol, floor):
     return out, inter, stats["evals"], info
 
 
-def _cells_by_view(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, floor):
+def _cells_by_view(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, floor,
+                   pyr: _Pyramid | None = None):
     """Specular term by cell quadrature, views with many pixels on a normal grid.
 
     Views (pixels sharing one ``ωo``) of ≥ ``_GRID_MIN_PIXELS`` go to :func:`_grid_view`; the
@@ -1232,7 +1255,7 @@ def _cells_by_view(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, f
     """
     dev = normal.device
     n_pix = normal.shape[0]
-    pyr = _pyramid(probe, _PYRAMID_K)
+    pyr = _pyramid(probe, _PYRAMID_K) if pyr is None else pyr
     views, inv = torch.unique(wo, dim=0, return_inverse=True)
     counts = torch.bincount(inv, minlength=views.shape[0])
     out = torch.zeros(n_pix, probe.image.shape[2], dtype=torch.float64, device=dev)

@@ -500,6 +500,8 @@ class _Renderer:
                 self.sh_probe_shape = (p_sh.height, p_sh.width)
                 self.probes.append((p_sh, torch.ones(3, dtype=torch.float64)))
             self.probe = self.probes[0][0]
+        #: per probe, what the renderer may reuse across views (the cell quadrature's pyramid)
+        self.caches: list[dict] = [{} for _ in self.probes]
 
     def environment(self, nrm: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         sc = self.scene
@@ -511,10 +513,10 @@ class _Renderer:
             return render_sh(sc.brdf, nrm, refl, torch.as_tensor(sc.light_sh))
         r = sc.render
         out = 0.0
-        for probe, weight in self.probes:   # the render is linear in the lighting
+        for (probe, weight), cache in zip(self.probes, self.caches):  # linear in the lighting
             b, info = render_environment(self.model, nrm, wo, probe, rel_tol=r["rel_tol"],
                                          max_samples=r["max_samples"], seed=r["seed"],
-                                         return_info=True)
+                                         return_info=True, cache=cache)
             self.info.append(info)
             out = out + b * weight
         return out

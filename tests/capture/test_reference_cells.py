@@ -268,3 +268,34 @@ def test_lobe_quadrature_does_not_claim_convergence_it_lacks(reference):
             assert true > 5e-3 and not sp["converged"] and not info["converged"]
         else:     # Phong's visible-lobe rule (tests/capture/test_reference.py) meets it
             assert true < 1e-3 and sp["converged"], (sp, true)
+
+
+def test_a_cache_reuses_the_pyramid_of_the_same_unchanged_probe(monkeypatch):
+    """``render_environment(cache=…)``: the cell quadrature's pyramid is built once for the
+    views of one probe (a 1024 × 2048 probe's takes ~30 s); the values are the same as without
+    the cache; an image changed in place, or another probe, builds a new one.
+    """
+    import brdfcap.capture.reference as ref
+
+    built = []
+    real = ref._pyramid
+    monkeypatch.setattr(ref, "_pyramid", lambda p, *a, **k: built.append(1) or real(p, *a, **k))
+    image = _spiky_probe()
+    probe = LatLongProbe(image)
+    m = make_brdf("beckmann", kd=[0.0] * 3, f0=[0.9] * 3, sigma=0.3)
+    n, wo = _pixels(256, 7)
+    cache: dict = {}
+    a = render_environment(m, n[:128], wo[:128], probe, rel_tol=1e-2, cache=cache)
+    b = render_environment(m, n[128:], wo[128:], probe, rel_tol=1e-2, cache=cache)
+    assert len(built) == 1
+    plain = render_environment(m, n, wo, probe, rel_tol=1e-2, method="cells")
+    ab = torch.cat([a, b])
+    cached = render_environment(m, n, wo, probe, rel_tol=1e-2, method="cells", cache=cache)
+    assert len(built) == 2 and torch.equal(cached, plain)   # (plain built its own)
+    image.mul_(2.0)                                          # in place: a new pyramid
+    twice = render_environment(m, n, wo, probe, rel_tol=1e-2, method="cells", cache=cache)
+    assert len(built) == 3
+    torch.testing.assert_close(twice, 2.0 * plain, rtol=1e-6, atol=0)
+    render_environment(m, n, wo, LatLongProbe(image.clone()), rel_tol=1e-2, cache=cache)
+    assert len(built) == 4
+    assert bool(torch.isfinite(ab).all())
