@@ -45,7 +45,13 @@ from brdfcap.core.errors import CaptureError
 
 from .images import write_image
 from .interreflection import DEFAULT_DIRECTIONS, indirect_radiance
-from .reference import LatLongProbe, irradiance_quadrature, render_environment, render_lights
+from .reference import (
+    LatLongProbe,
+    irradiance_quadrature,
+    irradiance_sh_rule,
+    render_environment,
+    render_lights,
+)
 from .types import CameraModel, NoiseModel
 
 __all__ = ["Scene", "load_scene", "simulate", "look_at", "builtin_scene_path", "view_poses",
@@ -336,10 +342,12 @@ def load_scene(path: str | Path) -> Scene:
         noise = NoiseModel(read=float(nt.get("read", 0.0)), gain=float(nt.get("gain", 0.0)),
                            relative=float(nt.get("relative", 0.0)))
     _warn_unknown(doc.get("simulation", {}), "simulation", "simulation.", notes)
-    # renderer: SH only by default where it is exact (Lambertian, band-limited SH lighting)
+    # renderer: the reference renderer by default everywhere — under band-limited SH lighting
+    # its Lambertian rule is exact too (docs/simulator.md) and, unlike "sh", it is not the
+    # forward model the fits invert; "sh" stays exact for a Lambertian surface there
     exact_sh = (kind == "environment" and brdf.model == "lambertian" and not probes
                 and not sources)
-    renderer = doc.get("renderer", "sh" if exact_sh else "reference")
+    renderer = doc.get("renderer", "reference")
     if renderer not in RENDERERS:
         raise CaptureError(f"scene key 'renderer' must be one of {', '.join(RENDERERS)}, got "
                            f"{renderer!r}", path)
@@ -541,7 +549,8 @@ class _Renderer:
             one = torch.ones(3, dtype=torch.float64)
             return math.pi * lambertian_radiance_sh(n, torch.as_tensor(self.scene.light_sh),
                                                     one).numpy()
-        return sum(irradiance_quadrature(n, p_, 2) * w for p_, w in self.probes).numpy()
+        return sum((irradiance_sh_rule(n, p_) if p_.sh is not None
+                    else irradiance_quadrature(n, p_, 2)) * w for p_, w in self.probes).numpy()
 
 
 def _one_bounce(scene: Scene, renderer: _Renderer, scene_rc, mesh, light: dict | None,

@@ -58,11 +58,19 @@ def test_ground_truth_records_renderer_effects_and_high_order_lighting(tmp_path)
     assert "sources = [[0.0, 0.0, 1.0]]" in toml
 
 
-def test_sh_renderer_default_only_where_exact(tmp_path):
+def test_reference_renderer_by_default_and_sh_exact_only_where_it_is(tmp_path):
+    """The reference renderer everywhere by default (session 16: a Lambertian surface under SH
+    lighting went to "sh", the SH forward model the fits invert; the reference renderer's rule
+    is exact there too, and independent); "sh" on request, exact only for that case.
+    """
     lam = SCENE.format(top="").replace("rotation_deg = 90\n", "").split("[[lighting.lights]]")[0]
     rest = "[camera]" + SCENE.split("[camera]")[1]
     (tmp_path / "a.toml").write_text(lam + rest)
-    assert load_scene(tmp_path / "a.toml").renderer == "sh"
+    sc = load_scene(tmp_path / "a.toml")
+    assert sc.renderer == "reference" and sc.renderer_exact
+    (tmp_path / "a2.toml").write_text('renderer = "sh"\n' + lam + rest)
+    sc = load_scene(tmp_path / "a2.toml")
+    assert sc.renderer == "sh" and sc.renderer_exact
     (tmp_path / "b.toml").write_text((lam + rest).replace('model = "lambertian"',
                                                           'model = "phong"\nks = [0.2, 0.2, 0.2]'
                                                           '\ns = 10.0'))
