@@ -131,6 +131,7 @@ from dataclasses import dataclass
 
 import torch
 from brdfcap.fit.brdf import BRDFModel, as_brdf_model
+from brdfcap.fit.brdf.base import orthonormal_basis
 from scipy.special import roots_legendre
 
 __all__ = ["LatLongProbe", "render_environment", "render_lights", "irradiance_quadrature",
@@ -146,6 +147,7 @@ _CELLS_MIN_PIXELS = 256     # "auto": cell quadrature from this many pixels on, 
 _CELLS_TEXELS_PER_PIXEL = 1 << 16  # pixel per this many probe texels (the pyramid's cost) ...
 _CELLS_MIN_WIDTH = 2.0      # ... for lobes whose median radius spans this many texels
 _CELLS_MIN_TOL = 1e-3       # ... at tolerances from this one up (finer: per-pixel rules)
+_MAP_LARGE_PROBE = 1 << 16  # probes of more texels: the irradiance map from twice the pixels
 _MAP_MIN_TOL = 1e-4         # irradiance map from this tolerance up
 #: Fastest error decay per doubling of the lobe rule's order, per probe interpolation
 #: (bilinear: C⁰, error O(n⁻²); cubic: C¹): the floor of its error estimate (module doc).
@@ -355,13 +357,7 @@ def irradiance_sh_rule(normal: torch.Tensor, probe: LatLongProbe, extra: int = 0
     local = torch.stack([st[:, None] * torch.cos(phi), st[:, None] * torch.sin(phi),
                          mu[:, None].expand(-1, nphi)], -1).reshape(-1, 3)
     wl = (mu * wmu)[:, None].expand(-1, nphi).reshape(-1) * (2.0 * math.pi / nphi)
-    # a tangent frame per normal (Frisvad 2012 / Duff et al. 2017, branchless)
-    nx, ny, nz = normal.unbind(-1)
-    sign = torch.where(nz >= 0, 1.0, -1.0).to(normal)
-    a = -1.0 / (sign + nz)
-    b = nx * ny * a
-    t1 = torch.stack([1.0 + sign * nx * nx * a, sign * b, -sign * nx], -1)
-    t2 = torch.stack([b, sign + ny * ny * a, -ny], -1)
+    t1, t2 = orthonormal_basis(normal)
     out = torch.zeros(normal.shape[0], probe.sh.shape[1], dtype=torch.float64, device=dev)
     step = max(1, _CHUNK // max(local.shape[0], 1))
     for s_ in range(0, normal.shape[0], step):
@@ -589,7 +585,7 @@ def render_environment(model, normal: torch.Tensor, wo: torch.Tensor, probe, *,
         raise ValueError(f"model has {kd.numel()} colour channels, probe has {c}")
     # the map's own cost grows with the probe faster than the texel sums' (512 × 1024, 900
     # pixels: map 66 s, texels 16 s): above 65536 texels it waits for twice the pixels
-    map_min = _MAP_MIN_PIXELS * (1 if p.height * p.width <= _CELLS_TEXELS_PER_PIXEL else 2)
+    map_min = _MAP_MIN_PIXELS * (1 if p.height * p.width <= _MAP_LARGE_PROBE else 2)
     use_map = (method != "quadrature" and n_pix >= map_min and p.width % 2 == 0
                and rel_tol >= _MAP_MIN_TOL and bool((p.image >= 0).all()))
     if bool((kd != 0).any()) and p.sh is not None and method != "quadrature":
@@ -1247,7 +1243,7 @@ def _grid_view(model: BRDFModel, normal, v, pyr: _Pyramid, rel_tol, floor):
 
 
 def _cells_by_view(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, floor,
-                   pyr: _Pyramid | None = None):
+                   pyr: _Pyramid):
     """Specular term by cell quadrature, views with many pixels on a normal grid.
 
     Views (pixels sharing one ``ωo``) of ≥ ``_GRID_MIN_PIXELS`` go to :func:`_grid_view`; the
@@ -1255,7 +1251,6 @@ def _cells_by_view(model: BRDFModel, normal, wo, probe: LatLongProbe, rel_tol, f
     """
     dev = normal.device
     n_pix = normal.shape[0]
-    pyr = _pyramid(probe, _PYRAMID_K) if pyr is None else pyr
     views, inv = torch.unique(wo, dim=0, return_inverse=True)
     counts = torch.bincount(inv, minlength=views.shape[0])
     out = torch.zeros(n_pix, probe.image.shape[2], dtype=torch.float64, device=dev)
