@@ -31,14 +31,15 @@ from __future__ import annotations
 import math
 
 import torch
-from scipy.special import gammaincinv, ndtri
+from scipy.special import gammaincinv, ndtr, ndtri
 
 from .filters import lambertian_filter
 from .sh import real_sh
 from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
-           "BAYES_DEFINITION", "PRECISION_LIMIT", "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
+           "BAYES_DEFINITION", "FILTER_DEFINITION", "filter_band_status", "PRECISION_LIMIT",
+           "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
            "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
            "weak_prior_variance", "band_prior_weakening", "MEASURED_BAND_GAMMA",
            "hidden_source", "HIDDEN_SOURCE_LMAX", "ZERO_BAND_LIMIT", "band_data_only_covariance",
@@ -229,6 +230,60 @@ BAYES_DEFINITION = (
     f"analytic prediction of Ramamoorthi & Hanrahan (|filter_l| / "
     f"|filter_0| < eps) is shown next to it."
 )
+
+
+#: Problem 2's radial filter (:func:`brdfcap.fit.inverse_brdf.fit_brdf_sh`): what decides that a
+#: band of ``Â_l = Λ_l ρ̂_l`` is determined (``results.json`` ``conditioning.definition``).
+FILTER_DEFINITION = (
+    f"Band l of the SH-domain BRDF filter A_l = Lambda_l rho_l (Ramamoorthi & Hanrahan 2001 "
+    f"eq. 12) is determined when (1) the data reach it (diagonal of the unregularised "
+    f"model-resolution matrix >= {RESOLUTION_LIMIT}: the known lighting has energy in band l and "
+    f"the samples span it), (2) it is not one of an aliased odd/even pair (one-sided angular "
+    f"support), and (3) its error is below {100 * ERROR_BOUND_LIMIT:g}% of its own value with "
+    f"probability {ERROR_BOUND_LEVEL:g} under the posterior of the Tikhonov estimate (the "
+    f"penalty read as a prior: variance plus expected bias squared; Wahba 1983) — or, for a "
+    f"band consistent with zero, its value is below {100 * ZERO_BAND_LIMIT:g}% of A_0 with that "
+    f"probability (*bounded*: a non-negative lobe has |A_l| <= A_0, so such a band is known to "
+    f"be empty). The band is compared with its own value, never with the DC term's error. "
+    f"ill_conditioned_from_l is the first band that is neither determined nor bounded in "
+    f"every channel; the prediction of Ramamoorthi & Hanrahan (first l whose lighting band norm "
+    f"||L_l||/|L_00| < eps) is shown next to it."
+)
+
+
+def filter_band_status(value: torch.Tensor, stderr: torch.Tensor,
+                       level: float = ERROR_BOUND_LEVEL
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Which bands of a radial BRDF filter the data determine, and which they bound to zero.
+
+    Rule (3) of :data:`FILTER_DEFINITION`: band ``l`` (one coefficient per channel) is
+    *precise* when its relative error bound at ``level`` (:func:`band_error_bound`, ``z_level``
+    standard errors for one coefficient) is at most :data:`ERROR_BOUND_LIMIT`, and *bounded*
+    when ``P(|A_l| < ZERO_BAND_LIMIT |Â_0|) >= level`` under ``N(Â_l, se²)`` — the data put it
+    below 1% of the lobe's DC (for a non-negative lobe ``|A_l| <= A_0``, since ``|P_l| <= 1``).
+
+    Parameters
+    ----------
+    value, stderr : torch.Tensor
+        ``(lmax+1, C)`` estimates and their (bias-aware) standard errors (``inf``: the data do
+        not reach the band).
+
+    Returns
+    -------
+    tuple
+        ``(precise, bounded, bound)``: bool ``(lmax+1, C)`` each, and the relative error bound
+        ``(lmax+1, C)`` (``inf`` where the band's value or error is 0 or not finite).
+    """
+    var = stderr.to(torch.float64) ** 2
+    bound = torch.stack([band_error_bound(var[l:l + 1], value[l].abs(), level)
+                         for l in range(value.shape[0])])
+    precise = bound <= ERROR_BOUND_LIMIT
+    lim = ZERO_BAND_LIMIT * value[0].abs()[None, :]
+    se = stderr.clamp_min(1e-300)
+    hi, lo = ((lim - value) / se).cpu().numpy(), ((-lim - value) / se).cpu().numpy()
+    inside = torch.as_tensor(ndtr(hi) - ndtr(lo), device=value.device)
+    bounded = torch.isfinite(stderr) & (inside >= level) & ~precise
+    return precise, bounded, bound
 
 
 def _chi2_quantile(q: float, dof: int) -> float:

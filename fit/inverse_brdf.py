@@ -28,7 +28,7 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
-from .conditioning import band_statistics, noise_level
+from .conditioning import FILTER_DEFINITION, band_statistics, filter_band_status, noise_level
 from .memory import check_dense_memory
 from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
@@ -59,6 +59,7 @@ class BRDFSHFit:
     solution: LinearSolution
     checks: dict = field(default_factory=dict)
     ambiguities: list = field(default_factory=list)  # aliased odd/even pairs (issue 12)
+    definition: str = FILTER_DEFINITION  # what "determined" means for a band of the filter
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -73,7 +74,8 @@ class BRDFSHFit:
                 "noise_level": self.noise_level, "prediction": self.prediction,
                 "regularization": {"rule": self.solution.rule,
                                    "lambda_rel": self.solution.lam_rel.tolist()},
-                "checks": self.checks, "ambiguities": self.ambiguities}
+                "checks": self.checks, "ambiguities": self.ambiguities,
+                "definition": self.definition}
 
 
 def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
@@ -138,7 +140,7 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         lam=sol.lam, lam_rel=sol.lam_rel, chi2_reduced=sol.chi2_reduced, dof=sol.dof,
         rule=sol.rule, noise_source=sol.noise_source, n_samples=sol.n_samples,
         band=bands[: lmax + 1], band_singular=sol.band_singular)
-    rows, ill = band_statistics(sol_f)
+    rows, _ = band_statistics(sol_f)
     eps = noise_level(sol_f)
     # ρ̂_l is seen through all 2l+1 coefficients of band l: its information is the band norm
     # ||L_l||² = Σ_m L_lm² (not the mean over m, which is √(2l+1) too small; issue 12)
@@ -153,17 +155,29 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     filt = sol.coefficients[: lmax + 1]
     # one-sided angular support: adjacent Legendre terms alias (issue 12)
     pairs, corr = _aliased_pairs(design, w, b.shape[0], lmax)
-    determined = sol.determined[: lmax + 1].clone()
+    reached = sol.determined[: lmax + 1].clone()
     filt_se = sol.stderr[: lmax + 1].clone()
+    aliased = {x for p_ in pairs for x in p_}
+    for l in aliased:
+        reached[l] = False
+        filt_se[l] = math.inf
+    # what the data resolve (conditioning.FILTER_DEFINITION): each band against its own value
+    # (or bounded to nothing), on the bias-aware error; not against the DC term's error, which
+    # called a band of SNR 1 "determined" (issue 12)
+    precise, bounded, bound = filter_band_status(filt, filt_se)
+    determined = reached & (precise | bounded)
+    ill = None
+    for l, row in enumerate(rows):
+        row["error_bound"] = float(bound[l].max()) if bool(reached[l].all()) else math.inf
+        row["bounded"] = bool(reached[l].all() and (bounded[l] & ~precise[l]).any()
+                              and determined[l].all())
+        row["ill_conditioned"] = not bool(determined[l].all())
+        if l in aliased:
+            row["aliased"] = True
+        if row["ill_conditioned"] and ill is None:
+            ill = l
     ambiguities = []
     if pairs:
-        for l in {x for p_ in pairs for x in p_}:
-            determined[l] = False
-            filt_se[l] = math.inf
-            rows[l]["ill_conditioned"] = True
-            rows[l]["aliased"] = True
-        first = min(x for p_ in pairs for x in p_)
-        ill = first if ill is None else min(ill, first)
         ambiguities.append({
             "name": "odd/even aliasing (one-sided angular support)",
             "pairs": pairs, "correlation": [corr[p_[0]] for p_ in pairs],
@@ -179,6 +193,7 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
                      determined=determined, bands=rows,
                      ill_conditioned_from_l=ill, noise_level=eps, prediction=prediction,
                      solution=sol, checks=checks, ambiguities=ambiguities)
+
 
 
 def _aliased_pairs(design, w, n, lmax, chunk: int = 32768) -> tuple[list[list[int]], dict]:

@@ -71,4 +71,8 @@ def conditioning_json(fit: SHFit | None, brdf_fit=None) -> dict:
         out["brdf"] = {"measured": brdf_fit.ill_conditioned_from_l,
                        "predicted": brdf_fit.prediction,
                        "noise_level": fin(float(brdf_fit.noise_level))}
+        if getattr(brdf_fit, "definition", None):  # problem 2's radial filter: its own rule
+            out["brdf"]["definition"] = brdf_fit.definition
+            if fit is None:
+                out["definition"] = brdf_fit.definition
     return out

@@ -32,11 +32,17 @@ computed from the data (no cancellation), ``tr H(λ) = Σ g/(g+λ)``.
 
 Uncertainty
 -----------
-``Cov x(λ) = σ² P^{-1/2} U diag(g/(g+λ)²) Uᵀ P^{-1/2}`` with ``σ² = max(χ²_ν, 1)`` when the noise
-model is known (inflated when it underestimates the scatter) and ``σ² = χ²_ν`` when it is
-not (uniform weights). The *unregularised* standard error ``σ sqrt(diag G⁺)`` is what decides
-whether the data determine a coefficient (see :mod:`brdfcap.fit.conditioning`); it does not
-depend on the rule.
+``stderr`` and ``covariance`` are those of the posterior when the penalty is read as a Gaussian
+prior ``P^{1/2} x ~ N(0, σ²/λ I)``: ``σ² P^{-1/2} U diag(1/(g+λ)) Uᵀ P^{-1/2}`` over the
+eigen-directions the data reach (Wahba 1983, JRSS B 45, "Bayesian confidence intervals for the
+cross-validated smoothing spline", §2). It is the sampling covariance of ``x(λ)``,
+``σ² P^{-1/2} U diag(g/(g+λ)²) Uᵀ P^{-1/2}``, plus the squared bias the penalty expects,
+``σ² P^{-1/2} U diag(λ/(g+λ)²) Uᵀ P^{-1/2}``: without that term the intervals undercover where λ
+is large next to ``g`` (issue 12). ``σ² = max(χ²_ν, 1)`` when the noise model is known
+(inflated when it underestimates the scatter) and ``σ² = χ²_ν`` when it is not (uniform
+weights). A coefficient the data do not reach (unregularised model-resolution diagonal below
+:data:`RESOLUTION_LIMIT`) gets ``inf``; the *unregularised* standard error ``σ sqrt(diag G⁺)``
+is kept as ``stderr_unregularised``.
 """
 
 from __future__ import annotations
@@ -85,7 +91,7 @@ class LinearSolution:
 
     coefficients: torch.Tensor  # (K, C) regularised estimate
     coefficients_unregularised: torch.Tensor  # (K, C) pseudo-inverse estimate (λ = 0)
-    stderr: torch.Tensor  # (K, C) s.d. of the regularised estimate; inf where not determined
+    stderr: torch.Tensor  # (K, C) posterior s.d. (variance + expected bias²); inf: undetermined
     stderr_unregularised: torch.Tensor  # (K, C) σ sqrt(diag G+); inf where not determined
     determined: torch.Tensor  # (K, C) bool: unregularised resolution diagonal > RESOLUTION_LIMIT
     resolution: torch.Tensor  # (K, C) diagonal of the regularised model-resolution matrix
@@ -376,14 +382,18 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         res_unreg = (uk * uk).sum(-1)
         det = res_unreg > RESOLUTION_LIMIT
         var_unreg = ((uk * uk) / g).sum(-1) * ps ** 2 * sig2
-        var_reg = ((uk * uk) * (g / (g + lam) ** 2)).sum(-1) * ps ** 2 * sig2
+        # the penalty read as a Gaussian prior (variance σ²/λ in the whitened coordinates):
+        # the posterior variance is the estimate's variance plus the squared bias that prior
+        # expects, Σ u² (g + λ)/(g + λ)² — an interval from the variance alone undercovers
+        # where λ is large next to g (issue 12; Wahba 1983, JRSS B 45, §2)
+        var_reg = ((uk * uk) / (g + lam)).sum(-1) * ps ** 2 * sig2
         determined[:, c] = det
         se_unreg[:, c] = torch.where(det, var_unreg.sqrt(), torch.full_like(x, math.inf))
         se_reg[:, c] = torch.where(det, var_reg.sqrt(), torch.full_like(x, math.inf))
         resol[:, c] = ((uk * uk) * filt).sum(-1)
         lam_abs[c], lam_rel[c], chi2[c], dofs[c] = lam, lam / scale, chi, dof
         if covs is not None:
-            covs[c] = (ps[:, None] * (uk * (g / (g + lam) ** 2)) @ uk.T * ps[None, :]) * sig2
+            covs[c] = (ps[:, None] * (uk / (g + lam)) @ uk.T * ps[None, :]) * sig2
     return LinearSolution(
         coefficients=coef, coefficients_unregularised=x0, stderr=se_reg,
         stderr_unregularised=se_unreg, determined=determined,

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from brdfcap.fit.brdf.base import orthonormal_basis
 
 __all__ = ["local_frame", "to_local", "from_local", "spherical_angles", "SphericalAngles",
            "RusinkiewiczAngles", "rusinkiewicz_angles", "rusinkiewicz_to_directions",
@@ -49,12 +50,7 @@ def local_frame(n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
         ``(*, 3)`` each, with ``t × b = n``.
     """
     _check3(n, "n")
-    x, y, z = n.unbind(-1)
-    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
-    a = -1.0 / (sign + z)
-    b_ = x * y * a
-    t = torch.stack([1.0 + sign * x * x * a, sign * b_, -sign * x], -1)
-    b = torch.stack([b_, sign + y * y * a, -y], -1)
+    t, b = orthonormal_basis(n)  # the one implementation of the construction (fit's BRDFs)
     return t, b, n
 
 

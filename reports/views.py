@@ -280,7 +280,14 @@ def radial_filter_rows(brdf: dict) -> dict | None:
         if b.get("singular_max") == 0:
             rows.append((l, "—", "not measured: the lighting has no energy in this band"))
             continue
-        if _is_num(b.get("median_snr")):
+        if ok and b.get("bounded"):
+            status = "determined: below 1% of Â₀ (bounded)"
+        elif not ok and b.get("aliased"):
+            status += " (aliased with a neighbouring band)"
+        elif not ok and _is_num(b.get("error_bound")):
+            # known, but not to the 10% a determined band needs (FILTER_DEFINITION)
+            status += f" (±{fmt_num(100 * b['error_bound'], 2)}% at 99%)"
+        elif _is_num(b.get("median_snr")):
             status += f" (median SNR {fmt_num(b['median_snr'], 2)})"
         rows.append((l, "—" if no_error and not ok else fmt_rgb_pm(val, e), status))
     kd = None
