@@ -11,8 +11,9 @@ specular — dielectrics). ``B`` is linear in ``L`` for fixed ``(kd, f)`` and li
 ``(kd, f)`` for fixed ``L``: each half-step is a convex weighted least-squares problem, solved in
 closed form from weighted Gram matrices precomputed once (the ALS iterations cost ``O(K³)``,
 not ``O(N K²)``); the final half-steps go through :func:`brdfcap.fit.solve.solve_wls` for the
-regularised estimates, standard errors and band conditioning. Those uncertainties are
-*conditional* on the other factor (they ignore its uncertainty) — stated in ``results.json``.
+regularised estimates and band conditioning. The standard errors are the joint
+Gauss–Newton ones (each factor's include the other's uncertainty), never below the
+regularised posterior of the final half-step — stated in ``results.json``.
 
 Ambiguities (R&H 2001 §6; Aldrian & Smith's "red light or red object") — reported, not hidden:
 
@@ -41,7 +42,7 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
-from .conditioning import band_statistics, noise_level
+from .conditioning import FILTER_DEFINITION, band_statistics, filter_band_status, noise_level
 from .lighting import SHFit
 from .memory import check_dense_memory
 from .records import conditioning_json, lighting_json
@@ -98,6 +99,8 @@ class BilinearFit:
     prediction: torch.Tensor  # (N, C)
     ambiguities: list[dict] = field(default_factory=list)
     gauge_invariant: dict = field(default_factory=dict)  # _gauge_invariant (issue 12)
+    #: (brdf_lmax+1,) bool: filter bands determined (conditioning.FILTER_DEFINITION)
+    filter_determined: torch.Tensor | None = None
 
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
@@ -112,6 +115,7 @@ class BilinearFit:
         eps = self.lighting.noise_level
         below = torch.nonzero(rel < eps)
         cond["brdf"] = {"measured": self.filter_ill_conditioned_from_l,
+                        "definition": FILTER_DEFINITION,
                         "noise_level": eps,
                         "predicted": {"model": "lighting spectrum", "eps": eps,
                                       "first_ill_band": int(below[0]) if below.numel() else None,
@@ -123,12 +127,17 @@ class BilinearFit:
                 "brdf": {"model": "diffuse+sh-radial-specular",
                          "parameters": {"kd": self.kd.tolist(), "filter": self.filter.tolist()},
                          "stderr": {"kd": fin(self.kd_stderr), "filter": fin(self.filter_stderr)},
+                         "filter_determined": None if self.filter_determined is None
+                         else self.filter_determined.tolist(),
                          "bands": self.filter_bands,
                          "ill_conditioned_from_l": self.filter_ill_conditioned_from_l,
+                         "definition": FILTER_DEFINITION,
                          "source": "bilinear factorisation (alternating least squares)",
-                         "uncertainty_note": "standard errors are conditional on the other "
-                                             "factor (lighting fixed for the BRDF and vice "
-                                             "versa)"},
+                         "uncertainty_note": "standard errors of kd and the filter are "
+                                             "those of the joint Gauss-Newton problem (the "
+                                             "lighting's uncertainty included), plus the "
+                                             "spread of an ambiguity's admissible range; the "
+                                             "lighting's are at least the joint ones"},
                 "factorisation": {"iterations": self.iterations, "converged": self.converged,
                                   "chi2_history": self.history[-10:]},
                 "ambiguities": self.ambiguities, "conditioning": cond,
@@ -452,7 +461,19 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         rule=sol_b.rule, noise_source=src, n_samples=sol_b.n_samples,
         band=torch.arange(lb + 1),
         band_singular=[torch.ones(1, 1, dtype=f64)] + sol_b.band_singular[1:lb + 1])
-    f_rows, f_ill = band_statistics(fsol, reference=torch.ones(1, dtype=f64))
+    f_rows, _ = band_statistics(fsol, reference=torch.ones(1, dtype=f64))
+    # what the data resolve of the filter: problem 2's rule (conditioning.FILTER_DEFINITION)
+    # on the joint errors — a band within 10% of its own value at 99%, or bounded below 1% of
+    # f_0 = 1; not "error below f_0", which called bands of SNR 1 determined (issue 12)
+    precise, bounded, bound = filter_band_status(f[:, None], f_se[:, None])
+    f_det = fsol.determined[:, 0] & torch.isfinite(f_se) & (precise | bounded)[:, 0]
+    f_ill = None
+    for l, row in enumerate(f_rows):
+        row["error_bound"] = float(bound[l, 0]) if bool(torch.isfinite(f_se[l])) else math.inf
+        row["bounded"] = bool(bounded[l, 0] and f_det[l])
+        row["ill_conditioned"] = not bool(f_det[l])
+        if row["ill_conditioned"] and f_ill is None:
+            f_ill = l
     fk = S @ f
     pred = torch.stack([yn @ L[:, c] * kd[c] + (yr * fk) @ L[:, c] for c in range(nch)], -1)
     spec_part = torch.stack([(yr * fk) @ L[:, c] - float(L[0, c] * fk[0]) * yr[:, 0]
@@ -491,7 +512,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     return BilinearFit(lighting=lt, kd=kd, kd_stderr=kd_se, filter=f, filter_stderr=f_se,
                        filter_bands=f_rows, filter_ill_conditioned_from_l=f_ill,
                        iterations=it, converged=converged, history=history, prediction=pred,
-                       ambiguities=amb, gauge_invariant=gi)
+                       ambiguities=amb, gauge_invariant=gi, filter_determined=f_det)
 
 
 def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls) -> dict:

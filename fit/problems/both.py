@@ -56,10 +56,11 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
     res = fit_bilinear(samples.normal, samples.reflected, samples.radiance, opts.lmax,
                        brdf_lmax=opts.brdf_lmax, variance=samples.variance, rule=opts.rule,
                        model=model)
-    note = "conditional on the other factor"
+    note = "joint Gauss-Newton errors (the lighting's uncertainty included)"
     est = [lighting_estimate(res.lighting),
            Estimate("kd", res.kd, res.kd_stderr, "channel", note=note),
            Estimate("brdf_filter", res.filter, res.filter_stderr, "band",
+                    determined=res.filter_determined,
                     note="specular filter f_l (f_0 = 1), the same in every channel; " + note),
            *gauge_estimates(res.gauge_invariant)]
     return FitResult("both", est, res.prediction, res.to_results(), summary=res.summary(),

@@ -13,6 +13,7 @@ import pytest
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
 from brdfcap.fit.brdf_models import phong_sh_filter
+from brdfcap.fit.conditioning import FILTER_DEFINITION
 from brdfcap.fit.filters import lambertian_filter
 from brdfcap.fit.sh import band_of_index
 
@@ -83,6 +84,12 @@ def test_ambiguities_reported_not_hidden(phong_reference_samples):
     assert torch.isfinite(f.lighting.coefficients).all()
     colour = next(a for a in res["ambiguities"] if "red light" in a["name"])
     assert colour["resolution"].startswith("resolved")
+    # the filter's bands follow problem 2's rule (FILTER_DEFINITION): here the DC split moves
+    # every f_l (l >= 1) by more than its error, so only the gauge f_0 = 1 is determined
+    assert res["brdf"]["definition"] == FILTER_DEFINITION
+    assert f.filter_determined.tolist() == [True] + [False] * 6
+    assert f.filter_ill_conditioned_from_l == 1
+    assert res["brdf"]["filter_determined"] == f.filter_determined.tolist()
 
 
 @pytest.mark.parametrize("dtype", [torch.float32])
