@@ -60,6 +60,8 @@ class BRDFSHFit:
     checks: dict = field(default_factory=dict)
     ambiguities: list = field(default_factory=list)  # aliased odd/even pairs (issue 12)
     definition: str = FILTER_DEFINITION  # what "determined" means for a band of the filter
+    internal_lmax: int | None = None  # highest band solved (>= lmax; the rest marginalised)
+    internal_filter: torch.Tensor | None = None  # (internal_lmax+1, C) every band solved
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -75,12 +77,13 @@ class BRDFSHFit:
                 "regularization": {"rule": self.solution.rule,
                                    "lambda_rel": self.solution.lam_rel.tolist()},
                 "checks": self.checks, "ambiguities": self.ambiguities,
-                "definition": self.definition}
+                "definition": self.definition, "internal_lmax": self.internal_lmax}
 
 
 def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
                 light_sh: torch.Tensor, lmax: int, variance: torch.Tensor | None = None,
-                diffuse: bool = True, rule: str = "gcv") -> BRDFSHFit:
+                diffuse: bool = True, rule: str = "gcv",
+                lmax_internal: int | None = None) -> BRDFSHFit:
     """Recover the radially symmetric SH-domain BRDF ``Â_l`` (and ``kd``) under known lighting.
 
     Parameters
@@ -94,9 +97,15 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         (:func:`brdfcap.capture.probes.load_known_lighting`). Bands of the BRDF
         above ``lmax_L`` are not excited and come back flagged as not determined.
     lmax : int
-        Highest BRDF band.
+        Highest BRDF band reported.
     diffuse : bool
         Also fit a Lambertian albedo ``kd`` per channel.
+    lmax_internal : int, optional
+        Solve the filter to this band and report bands ``0..lmax`` (``light_sh`` should reach
+        it): the lighting a lobe passes above ``lmax`` is then modelled, not left in the
+        residual as a structured error that biases the reported bands, and the reported block
+        of the posterior covariance is marginalised over the unreported bands
+        (``docs/fitting.md``, "Problem 2's internal bandwidth").
 
     Returns
     -------
@@ -109,7 +118,8 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         raise FitError("no samples to fit")
     L = light_sh.to(f64).to(n.device)
     ll = int(math.isqrt(L.shape[0])) - 1
-    lw = max(ll, lmax)
+    lf = lmax if lmax_internal is None else max(lmax, int(lmax_internal))  # bands solved
+    lw = max(ll, lf)
     Lp = torch.zeros((lw + 1) ** 2, L.shape[1], dtype=f64, device=n.device)
     Lp[: L.shape[0]] = L
     band_l = band_of_index(lw).to(n.device)
@@ -118,17 +128,17 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     def design(s: int, e: int) -> torch.Tensor:
         y = real_sh(r[s:e], lw)  # (n, K)
         cols = [torch.einsum("nk,kc->nc", y[:, band_l == l], Lp[band_l == l])
-                for l in range(lmax + 1)]
+                for l in range(lf + 1)]
         if diffuse:
             cols.append(real_sh(n[s:e], lw) @ (fd[:, None] * Lp))
         return torch.stack(cols, -1)  # (n, C, J)
 
-    bands = torch.arange(lmax + 1, device=n.device)
+    bands = torch.arange(lf + 1, device=n.device)
     if diffuse:
         bands = torch.cat([bands, torch.zeros(1, dtype=bands.dtype, device=n.device)])
     var = None if variance is None else variance.to(f64)
     w, src = noise_weights(b, var)
-    pen = torch.ones(lmax + 1, dtype=f64)  # white prior on Â_l (all O(1) or smaller)
+    pen = torch.ones(lf + 1, dtype=f64)  # white prior on Â_l (all O(1) or smaller)
     sol = solve_wls(design, b, w, bands, rule=rule, noise_known=var is not None,
                     band_penalty=pen, noise_source=src)
     # statistics only over the filter bands (kd reported separately)
@@ -192,7 +202,8 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
                      kd_stderr=sol.stderr[-1] if diffuse else None,
                      determined=determined, bands=rows,
                      ill_conditioned_from_l=ill, noise_level=eps, prediction=prediction,
-                     solution=sol, checks=checks, ambiguities=ambiguities)
+                     solution=sol, checks=checks, ambiguities=ambiguities,
+                     internal_lmax=lf, internal_filter=sol.coefficients[: lf + 1])
 
 
 

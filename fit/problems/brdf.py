@@ -54,16 +54,54 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
     return FitResult("brdf", _parametric_estimates(f), pred, rec, summary=summ)
 
 
+def _tail_empty(fit) -> bool:
+    """Whether the top two bands solved hold nothing: within 2 s.e. of 0 or below 1% of Â_0."""
+    sol, k = fit.solution, fit.internal_lmax
+    x, se = sol.coefficients[: k + 1], sol.stderr[: k + 1]
+    lim = torch.maximum(2.0 * se[k - 1:], FILTER_TAIL_REL * x[0].abs()[None, :])
+    return bool((x[k - 1:].abs() <= lim).all())
+
+
+#: The model-free filter is solved until its top two bands are within 2 s.e. of zero or
+#: below this fraction of ``Â_0`` (:func:`_filter_fit`).
+FILTER_TAIL_REL = 1e-2
+
+
+def _filter_fit(samples, known: Known, opts: FitOptions, light: torch.Tensor):
+    """Solve the model-free radial filter to the bandwidth the lobe passes when a probe allows.
+
+    With the capture's probe re-projectable (:attr:`Known.lighting_at`) the filter is solved
+    internally to ``K = 2 brdf_lmax`` (at least ``brdf_lmax + 4``), doubled while its top two
+    bands still hold power (:func:`_tail_empty`), at most :data:`PROBE_BAND_MAX`, and the
+    bands to ``--brdf-lmax`` are reported, marginalised over the others: a lobe that passes
+    lighting above ``--brdf-lmax`` otherwise leaves it in the residual, where it biases the
+    reported bands (``docs/fitting.md``, "Problem 2's internal bandwidth"). Returns
+    ``(fit, lighting used)``.
+    """
+    lmax = opts.brdf_lmax
+    if known.lighting_at is None:
+        return fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light, lmax,
+                           variance=samples.variance, rule=opts.rule), light
+    k = lmax
+    while True:
+        k = min(PROBE_BAND_MAX, max(2 * k, k + 4))
+        light_k = known.lighting_at(k)
+        fit = fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light_k, lmax,
+                          variance=samples.variance, rule=opts.rule, lmax_internal=k)
+        if k >= PROBE_BAND_MAX or _tail_empty(fit):
+            return fit, light_k
+
+
 def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     light = need_known_lighting(known, "brdf")
-    fit = fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light,
-                      opts.brdf_lmax, variance=samples.variance, rule=opts.rule)
-    lw = max(int(math.isqrt(light.shape[0])) - 1, fit.lmax)
-    lp = torch.zeros((lw + 1) ** 2, light.shape[1], dtype=torch.float64)
-    lp[: light.shape[0]] = light
+    fit, light_f = _filter_fit(samples, known, opts, light)
+    kf = fit.internal_lmax if fit.internal_lmax is not None else fit.lmax
+    lw = max(int(math.isqrt(light_f.shape[0])) - 1, kf)
+    lp = torch.zeros((lw + 1) ** 2, light_f.shape[1], dtype=torch.float64)
+    lp[: light_f.shape[0]] = light_f
     band = band_of_index(lw)
-    fpad = torch.zeros(lw + 1, light.shape[1], dtype=torch.float64)
-    fpad[: fit.lmax + 1] = fit.filter
+    fpad = torch.zeros(lw + 1, light_f.shape[1], dtype=torch.float64)
+    fpad[: kf + 1] = fit.filter if fit.internal_filter is None else fit.internal_filter
     pred = real_sh(samples.reflected, lw) @ (fpad[band] * lp)
     if fit.kd is not None:
         pred = pred + (real_sh(samples.normal, lw) @ (diffuse_filter(lw)[band][:, None] * lp)
@@ -76,6 +114,11 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     summ = [f"Problem 2 (inverse BRDF, known SH lighting): radial filter to l = {fit.lmax}; "
             f"first ill-conditioned band {_band(fit.ill_conditioned_from_l)} measured, "
             f"{_band(fit.prediction['first_ill_band'])} predicted from the lighting spectrum."]
+    if kf > fit.lmax:
+        summ.append(f"The filter was solved to l = {kf} under the probe projected that far (its "
+                    f"top bands hold no power): the lighting the lobe passes above l = "
+                    f"{fit.lmax} is modelled, and the reported bands are marginalised over the "
+                    f"others.")
     est = [Estimate("brdf_filter", fit.filter, fit.filter_stderr, "band",
                     determined=fit.determined, note="A_l = Lambda_l rho_l (R&H 2001 eq. 12)")]
     if fit.kd is not None:
