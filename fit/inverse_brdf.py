@@ -34,8 +34,9 @@ from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
 
-__all__ = ["BRDFSHFit", "fit_brdf_sh", "fit_brdf_parametric",
-           "ParametricFit", "fit_brdf_isotropic", "isotropic_design", "local_frames"]
+__all__ = ["BRDFSHFit", "fit_brdf_sh", "horizon_keep", "LOBE_RADIUS_FACTOR",
+           "fit_brdf_parametric", "ParametricFit", "fit_brdf_isotropic", "isotropic_design",
+           "local_frames"]
 
 #: Adjacent filter bands whose estimates correlate below ``-ALIAS_CORR`` are reported as an
 #: aliased pair (one-sided angular support), not as determined.
@@ -62,6 +63,7 @@ class BRDFSHFit:
     definition: str = FILTER_DEFINITION  # what "determined" means for a band of the filter
     internal_lmax: int | None = None  # highest band solved (>= lmax; the rest marginalised)
     internal_filter: torch.Tensor | None = None  # (internal_lmax+1, C) every band solved
+    horizon: dict | None = None  # the rim samples left out (horizon_keep)
 
     def to_json(self) -> dict:
         """JSON-ready dict."""
@@ -77,13 +79,14 @@ class BRDFSHFit:
                 "regularization": {"rule": self.solution.rule,
                                    "lambda_rel": self.solution.lam_rel.tolist()},
                 "checks": self.checks, "ambiguities": self.ambiguities,
-                "definition": self.definition, "internal_lmax": self.internal_lmax}
+                "definition": self.definition, "internal_lmax": self.internal_lmax,
+                "horizon": self.horizon}
 
 
 def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
                 light_sh: torch.Tensor, lmax: int, variance: torch.Tensor | None = None,
                 diffuse: bool = True, rule: str = "gcv",
-                lmax_internal: int | None = None) -> BRDFSHFit:
+                lmax_internal: int | None = None, horizon_cut: bool = True) -> BRDFSHFit:
     """Recover the radially symmetric SH-domain BRDF ``Â_l`` (and ``kd``) under known lighting.
 
     Parameters
@@ -106,6 +109,11 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         residual as a structured error that biases the reported bands, and the reported block
         of the posterior covariance is marginalised over the unreported bands
         (``docs/fitting.md``, "Problem 2's internal bandwidth").
+    horizon_cut : bool
+        Fit again without the samples whose lobe the horizon cuts (:func:`horizon_keep`):
+        R&H's radial model has the whole lobe above the horizon, and the rim pixels where it is
+        not bias the low bands (``docs/fitting.md``, "Problem 2: rim samples whose lobe the
+        horizon cuts").
 
     Returns
     -------
@@ -113,6 +121,20 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         ``filter[l]`` is ``Λ_l ρ̂_l`` (R&H 2001); ``ρ̂_l = filter[l] / Λ_l``.
     """
     f64 = torch.float64
+    if horizon_cut:
+        args = dict(variance=variance, diffuse=diffuse, rule=rule, lmax_internal=lmax_internal)
+        first = fit_brdf_sh(normal, reflected, radiance, light_sh, lmax, horizon_cut=False,
+                            **args)
+        keep, info = horizon_keep(normal, reflected, first.internal_filter)
+        if keep is None:
+            first.horizon = info
+            return first
+        var_k = None if variance is None else variance[keep]
+        args["variance"] = var_k
+        out = fit_brdf_sh(normal[keep], reflected[keep], radiance[keep], light_sh, lmax,
+                          horizon_cut=False, **args)
+        out.horizon = info
+        return out
     n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
     if b.shape[0] == 0:
         raise FitError("no samples to fit")
@@ -205,6 +227,68 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
                      solution=sol, checks=checks, ambiguities=ambiguities,
                      internal_lmax=lf, internal_filter=sol.coefficients[: lf + 1])
 
+
+
+#: ``θ₁% · l½ = sqrt(4 ln 100 ln 2)``: a Gaussian lobe ``exp(−s θ²/2)`` (Phong's ``cos^s θ``
+#: near its peak) whose filter ``exp(−l²/2s)`` (R&H 2001 eq. 19) halves at ``l½`` falls to 1%
+#: of its peak at ``θ₁%`` (microfacet lobes, seed eq. 6, alike).
+LOBE_RADIUS_FACTOR = math.sqrt(4.0 * math.log(100.0) * math.log(2.0))
+#: The horizon cut is not made when it would leave fewer than this share of the samples.
+HORIZON_KEEP_MIN = 0.25
+
+
+def horizon_keep(normal: torch.Tensor, reflected: torch.Tensor, filt: torch.Tensor
+                 ) -> tuple[torch.Tensor | None, dict]:
+    """Select the samples whose specular lobe lies above the horizon, from a first fit's filter.
+
+    R&H's reflection-space model (``B = Σ Â_l L_lm Y_lm(r)``, 2001 eq. 12) integrates the whole
+    lobe about ``r``; where ``r`` is within the lobe's radius ``θ₁%`` of the horizon the true
+    reflection loses the part of the lobe below it, and those rim samples pull the low bands
+    down (measured: 16-25 s.e. on bands 0-1; ``docs/fitting.md``). ``θ₁%`` comes from the
+    fitted filter: ``LOBE_RADIUS_FACTOR / l½`` with ``l½`` where ``Â_l / Â_0`` (mean over
+    channels) first falls below 1/2 (linear between bands; the last band solved if it never
+    does). Kept: ``n·r > sin θ₁%``.
+
+    Returns
+    -------
+    tuple
+        ``(keep, info)``: ``keep`` (N,) bool, or ``None`` when nothing is cut (no specular
+        lobe, every sample clear of the horizon, or fewer than :data:`HORIZON_KEEP_MIN` would
+        stay); ``info`` the radius, the threshold and the counts (``results.json``).
+    """
+    f = filt.to(torch.float64).mean(-1)
+    n_all = int(normal.shape[0])
+    info = {"lobe_radius_deg": None, "min_cos_reflected": None, "kept": n_all, "of": n_all,
+            "note": "no specular lobe: nothing cut"}
+    if not bool(f[0] > 0) or f.shape[0] < 2:
+        return None, info
+    rel = (f / f[0]).tolist()
+    l_half = float(len(rel) - 1)
+    for l in range(1, len(rel)):
+        if rel[l] < 0.5:
+            l_half = (l - 1) + (rel[l - 1] - 0.5) / max(rel[l - 1] - rel[l], 1e-300)
+            break
+    theta = min(LOBE_RADIUS_FACTOR / max(l_half, 1e-3), math.pi / 2)
+    c = math.sin(theta)
+    cos_nr = (torch.nn.functional.normalize(normal.to(torch.float64), dim=-1)
+              * torch.nn.functional.normalize(reflected.to(torch.float64), dim=-1)).sum(-1)
+    keep = cos_nr > c
+    kept = int(keep.sum())
+    info = {"lobe_radius_deg": math.degrees(theta), "min_cos_reflected": c, "kept": kept,
+            "of": n_all}
+    if kept == n_all:
+        info["note"] = "every sample's lobe is above the horizon: nothing cut"
+        return None, info
+    if kept < HORIZON_KEEP_MIN * n_all:
+        info["kept"] = n_all
+        info["note"] = (f"not cut: only {kept} of {n_all} samples have their lobe (radius "
+                        f"{math.degrees(theta):.0f} deg) above the horizon; the low bands may "
+                        f"be biased by the rim (R&H's radial model ignores the horizon)")
+        return None, info
+    info["note"] = (f"{n_all - kept} rim samples left out: their reflected direction is within "
+                    f"the lobe's radius ({math.degrees(theta):.0f} deg, where it falls to 1%) "
+                    f"of the horizon, which R&H's radial model ignores")
+    return keep, info
 
 
 def _aliased_pairs(design, w, n, lmax, chunk: int = 32768) -> tuple[list[list[int]], dict]:

@@ -114,6 +114,10 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     summ = [f"Problem 2 (inverse BRDF, known SH lighting): radial filter to l = {fit.lmax}; "
             f"first ill-conditioned band {_band(fit.ill_conditioned_from_l)} measured, "
             f"{_band(fit.prediction['first_ill_band'])} predicted from the lighting spectrum."]
+    hz = fit.horizon or {}
+    if hz.get("kept", 0) < hz.get("of", 0) or str(hz.get("note", "")).startswith("not cut"):
+        summ.append(f"Horizon: {hz['note']} (docs/fitting.md, 'Problem 2: rim samples whose "
+                    f"lobe the horizon cuts').")
     if kf > fit.lmax:
         summ.append(f"The filter was solved to l = {kf} under the probe projected that far (its "
                     f"top bands hold no power): the lighting the lobe passes above l = "
