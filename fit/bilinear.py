@@ -43,6 +43,7 @@ from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import FILTER_DEFINITION, band_statistics, filter_band_status, noise_level
+from .inverse_brdf import horizon_keep
 from .lighting import SHFit
 from .memory import check_dense_memory
 from .records import conditioning_json, lighting_json
@@ -99,6 +100,7 @@ class BilinearFit:
     prediction: torch.Tensor  # (N, C)
     ambiguities: list[dict] = field(default_factory=list)
     gauge_invariant: dict = field(default_factory=dict)  # _gauge_invariant (issue 12)
+    horizon: dict | None = None  # rim samples left out (inverse_brdf.horizon_keep)
     #: (brdf_lmax+1,) bool: filter bands determined (conditioning.FILTER_DEFINITION)
     filter_determined: torch.Tensor | None = None
 
@@ -141,6 +143,7 @@ class BilinearFit:
                 "factorisation": {"iterations": self.iterations, "converged": self.converged,
                                   "chi2_history": self.history[-10:]},
                 "ambiguities": self.ambiguities, "conditioning": cond,
+                "horizon": self.horizon,
                 "gauge_invariant": self._gauge_json()}
 
     def _gauge_json(self) -> dict:
@@ -163,6 +166,9 @@ class BilinearFit:
              f"lighting ill-conditioned from {from_l(self.lighting.ill_conditioned_from_l)}, "
              f"specular filter from {from_l(self.filter_ill_conditioned_from_l)}."]
         s += ["Ambiguity: " + a["name"] + " — " + a["resolution"] for a in self.ambiguities]
+        hz = getattr(self, "horizon", None) or {}
+        if hz.get("kept", 0) < hz.get("of", 0) or str(hz.get("note", "")).startswith("not cut"):
+            s.append(f"Horizon: {hz['note']} (docs/fitting.md, 'Problem 3: ambiguities').")
         return s
 
 
@@ -176,7 +182,7 @@ def _lstsq(g: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
 def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
                  lmax: int, brdf_lmax: int = 8, variance: torch.Tensor | None = None,
                  rule: str = "gcv", model: str = "phong", s0: float = 32.0,
-                 max_iter: int = 50, tol: float = 1e-6) -> BilinearFit:
+                 max_iter: int = 50, tol: float = 1e-6, horizon_cut: bool = True) -> BilinearFit:
     """Recover lighting ``L``, albedo ``kd`` and specular filter ``f_l`` jointly (module doc).
 
     Parameters
@@ -194,11 +200,40 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         Levenberg-Marquardt on all unknowns (Gauss-Newton normal matrix assembled from the
         same Grams) finishes the convergence.
 
+    horizon_cut : bool
+        Fit again without the samples whose specular lobe the horizon cuts
+        (:func:`brdfcap.fit.inverse_brdf.horizon_keep`, radius from the first fit's filter):
+        the radial model ``Σ f_l L_lm Y_lm(r)`` integrates the whole lobe, and rim samples where
+        the horizon cuts it bias every factor (``docs/fitting.md``, "Problem 3: ambiguities").
+        ``prediction`` stays over every sample.
+
     Returns
     -------
     BilinearFit
     """
     f64 = torch.float64
+    if horizon_cut:
+        kw = dict(lmax=lmax, brdf_lmax=brdf_lmax, rule=rule, model=model, s0=s0,
+                  max_iter=max_iter, tol=tol, horizon_cut=False)
+        first = fit_bilinear(normal, reflected, radiance, variance=variance, **kw)
+        keep, info = horizon_keep(normal, reflected, first.filter[:, None])
+        if keep is not None:
+            try:
+                out = fit_bilinear(normal[keep], reflected[keep], radiance[keep],
+                                   variance=None if variance is None else variance[keep], **kw)
+            except FitError:
+                keep = None
+                info["kept"] = info["of"]
+                info["note"] = ("not cut: too few samples would stay for the bilinear "
+                                "factorisation; the factors may be biased by the rim")
+        if keep is None:
+            first.horizon = info
+            return first
+        n_all, r_all, _ = drop_nonfinite_directions(normal, reflected, radiance)
+        out.prediction = _prediction(n_all, r_all, out.lighting.coefficients, out.kd,
+                                     out.filter, lmax)
+        out.horizon = info
+        return out
     n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
     var = None if variance is None else variance.to(f64)
     w, src = noise_weights(b, var)
@@ -513,6 +548,19 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                        filter_bands=f_rows, filter_ill_conditioned_from_l=f_ill,
                        iterations=it, converged=converged, history=history, prediction=pred,
                        ambiguities=amb, gauge_invariant=gi, filter_determined=f_det)
+
+
+def _prediction(n, r, L, kd, f, lmax) -> torch.Tensor:
+    """Radiance ``(N, C)`` of the bilinear model (module doc) at normals ``n``, reflected ``r``."""
+    band = band_of_index(lmax)
+    fk = torch.zeros(band.shape[0], dtype=torch.float64)
+    lb = f.shape[0] - 1
+    for l in range(min(lmax, lb) + 1):
+        fk[band == l] = f[l]
+    yn = real_sh(n, lmax) * diffuse_filter(lmax)[band]
+    yr = real_sh(r, lmax)
+    return torch.stack([yn @ L[:, c] * kd[c] + (yr * fk) @ L[:, c]
+                        for c in range(L.shape[1])], -1)
 
 
 def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls) -> dict:
