@@ -43,7 +43,7 @@ from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import FILTER_DEFINITION, band_statistics, filter_band_status, noise_level
-from .inverse_brdf import horizon_keep
+from .inverse_brdf import horizon_keep, horizon_lines
 from .lighting import SHFit
 from .memory import check_dense_memory
 from .records import conditioning_json, lighting_json
@@ -166,9 +166,7 @@ class BilinearFit:
              f"lighting ill-conditioned from {from_l(self.lighting.ill_conditioned_from_l)}, "
              f"specular filter from {from_l(self.filter_ill_conditioned_from_l)}."]
         s += ["Ambiguity: " + a["name"] + " — " + a["resolution"] for a in self.ambiguities]
-        hz = getattr(self, "horizon", None) or {}
-        if hz.get("kept", 0) < hz.get("of", 0) or str(hz.get("note", "")).startswith("not cut"):
-            s.append(f"Horizon: {hz['note']} (docs/fitting.md, 'Problem 3: ambiguities').")
+        s += horizon_lines(getattr(self, "horizon", None), "Problem 3: ambiguities")
         return s
 
 
@@ -255,11 +253,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     rn = torch.stack([yn.T @ (w[:, c] * b0[:, c]) for c in range(nch)])
     rr = torch.stack([yr.T @ (w[:, c] * b0[:, c]) for c in range(nch)])
     bwb = (w * b0 * b0).sum(0)
-    # band-sum operator S (K, lb+1): f_l acts on coefficients of band l (l <= min(lmax, lb))
     lb = brdf_lmax
-    S = torch.zeros(k, lb + 1, dtype=f64)
-    for l in range(min(lmax, lb) + 1):
-        S[band == l, l] = 1.0
+    S = _band_sum(lmax, lb)
     f = phong_sh_filter(s0, lb) if model == "phong" else torch.exp(
         -(0.2 * torch.arange(lb + 1, dtype=f64)) ** 2)
     f = f / f[0]
@@ -510,7 +505,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         if row["ill_conditioned"] and f_ill is None:
             f_ill = l
     fk = S @ f
-    pred = torch.stack([yn @ L[:, c] * kd[c] + (yr * fk) @ L[:, c] for c in range(nch)], -1)
+    pred = _predict(yn, yr, fk, L, kd)
     spec_part = torch.stack([(yr * fk) @ L[:, c] - float(L[0, c] * fk[0]) * yr[:, 0]
                              for c in range(nch)], -1)  # non-constant specular signal
     spec_frac = float(spec_part.norm() / pred.norm().clamp_min(1e-300))
@@ -550,17 +545,29 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                        ambiguities=amb, gauge_invariant=gi, filter_determined=f_det)
 
 
+def _band_sum(lmax: int, lb: int) -> torch.Tensor:
+    """Return the band-sum operator ``S`` ``((lmax+1)², lb+1)`` (``S f``: filter per coefficient).
+
+    ``f_l`` acts on the coefficients of band ``l`` (``l ≤ min(lmax, lb)``).
+    """
+    band = band_of_index(lmax)
+    S = torch.zeros(band.shape[0], lb + 1, dtype=torch.float64)
+    for l in range(min(lmax, lb) + 1):
+        S[band == l, l] = 1.0
+    return S
+
+
+def _predict(yn, yr, fk, L, kd) -> torch.Tensor:
+    """Radiance ``(N, C)``: ``kd_c yn L_c + (yr fk) L_c`` (module doc; ``yn`` filtered rows)."""
+    return torch.stack([yn @ L[:, c] * kd[c] + (yr * fk) @ L[:, c]
+                        for c in range(L.shape[1])], -1)
+
+
 def _prediction(n, r, L, kd, f, lmax) -> torch.Tensor:
     """Radiance ``(N, C)`` of the bilinear model (module doc) at normals ``n``, reflected ``r``."""
     band = band_of_index(lmax)
-    fk = torch.zeros(band.shape[0], dtype=torch.float64)
-    lb = f.shape[0] - 1
-    for l in range(min(lmax, lb) + 1):
-        fk[band == l] = f[l]
-    yn = real_sh(n, lmax) * diffuse_filter(lmax)[band]
-    yr = real_sh(r, lmax)
-    return torch.stack([yn @ L[:, c] * kd[c] + (yr * fk) @ L[:, c]
-                        for c in range(L.shape[1])], -1)
+    return _predict(real_sh(n, lmax) * diffuse_filter(lmax)[band], real_sh(r, lmax),
+                    _band_sum(lmax, f.shape[0] - 1) @ f, L, kd)
 
 
 def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls) -> dict:

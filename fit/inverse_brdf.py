@@ -34,7 +34,7 @@ from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
 
-__all__ = ["BRDFSHFit", "fit_brdf_sh", "horizon_keep", "LOBE_RADIUS_FACTOR",
+__all__ = ["BRDFSHFit", "fit_brdf_sh", "horizon_keep", "horizon_lines", "LOBE_RADIUS_FACTOR",
            "fit_brdf_parametric", "ParametricFit", "fit_brdf_isotropic", "isotropic_design",
            "local_frames"]
 
@@ -201,8 +201,7 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     ill = None
     for l, row in enumerate(rows):
         row["error_bound"] = float(bound[l].max()) if bool(reached[l].all()) else math.inf
-        row["bounded"] = bool(reached[l].all() and (bounded[l] & ~precise[l]).any()
-                              and determined[l].all())
+        row["bounded"] = bool(reached[l].all() and bounded[l].any() and determined[l].all())
         row["ill_conditioned"] = not bool(determined[l].all())
         if l in aliased:
             row["aliased"] = True
@@ -226,7 +225,6 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
                      ill_conditioned_from_l=ill, noise_level=eps, prediction=prediction,
                      solution=sol, checks=checks, ambiguities=ambiguities,
                      internal_lmax=lf, internal_filter=sol.coefficients[: lf + 1])
-
 
 
 #: ``θ₁% · l½ = sqrt(4 ln 100 ln 2)``: a Gaussian lobe ``exp(−s θ²/2)`` (Phong's ``cos^s θ``
@@ -289,6 +287,18 @@ def horizon_keep(normal: torch.Tensor, reflected: torch.Tensor, filt: torch.Tens
                     f"the lobe's radius ({math.degrees(theta):.0f} deg, where it falls to 1%) "
                     f"of the horizon, which R&H's radial model ignores")
     return keep, info
+
+
+def horizon_lines(info: dict | None, section: str) -> list[str]:
+    """Return the run's note on :func:`horizon_keep`'s ``info`` (a list of 0 or 1 lines).
+
+    One line when samples were left out or a cut was withheld, naming the ``section`` of
+    ``docs/fitting.md`` that explains it.
+    """
+    hz = info or {}
+    if hz.get("kept", 0) < hz.get("of", 0) or str(hz.get("note", "")).startswith("not cut"):
+        return [f"Horizon: {hz['note']} (docs/fitting.md, '{section}')."]
+    return []
 
 
 def _aliased_pairs(design, w, n, lmax, chunk: int = 32768) -> tuple[list[list[int]], dict]:

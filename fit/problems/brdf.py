@@ -19,7 +19,7 @@ from brdfcap.core.errors import FitError
 from ..brdf import as_brdf_model, get_brdf_model, make_brdf
 from ..brdf_models import diffuse_filter, render_directional
 from ..conditioning import VERDICT_NOT_WIDENED, residual_adequacy
-from ..inverse_brdf import fit_brdf_sh
+from ..inverse_brdf import fit_brdf_sh, horizon_lines
 from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric_models
 from ..records import conditioning_json
 from ..result import Estimate, FitResult
@@ -114,10 +114,7 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     summ = [f"Problem 2 (inverse BRDF, known SH lighting): radial filter to l = {fit.lmax}; "
             f"first ill-conditioned band {_band(fit.ill_conditioned_from_l)} measured, "
             f"{_band(fit.prediction['first_ill_band'])} predicted from the lighting spectrum."]
-    hz = fit.horizon or {}
-    if hz.get("kept", 0) < hz.get("of", 0) or str(hz.get("note", "")).startswith("not cut"):
-        summ.append(f"Horizon: {hz['note']} (docs/fitting.md, 'Problem 2: rim samples whose "
-                    f"lobe the horizon cuts').")
+    summ += horizon_lines(fit.horizon, "Problem 2: rim samples whose lobe the horizon cuts")
     if kf > fit.lmax:
         summ.append(f"The filter was solved to l = {kf} under the probe projected that far (its "
                     f"top bands hold no power): the lighting the lobe passes above l = "
