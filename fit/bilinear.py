@@ -42,7 +42,14 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
-from .conditioning import FILTER_DEFINITION, band_statistics, filter_band_status, noise_level
+from .conditioning import (
+    FILTER_DEFINITION,
+    band_statistics,
+    data_resolved,
+    filter_band_status,
+    filter_reason,
+    noise_level,
+)
 from .inverse_brdf import horizon_keep, horizon_lines
 from .lighting import SHFit
 from .memory import check_dense_memory
@@ -428,7 +435,12 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     # the joint (unconditional) error bounds the conditional, regularised one from below
     sol_l.stderr = torch.where(sol_l.determined, torch.maximum(sol_l.stderr, se_l),
                                torch.full_like(se_l, math.inf))
-    rows, ill = band_statistics(sol_l)
+    # bands judged on the coefficients no ambiguity touches (conditioning.band_statistics);
+    # the flags stay per coefficient: untouched, and set by the data rather than the penalty
+    rows, ill = band_statistics(sol_l, exclude=amb_mask)
+    sol_l.determined = sol_l.determined & data_resolved(sol_l)
+    sol_l.stderr = torch.where(sol_l.determined, sol_l.stderr,
+                               torch.full_like(sol_l.stderr, math.inf))
     eps = noise_level(sol_l)
     lt = SHFit(lmax=lmax, coefficients=sol_l.coefficients, stderr=sol_l.stderr,
                determined=sol_l.determined, chi2_reduced=sol_l.chi2_reduced,
@@ -502,6 +514,10 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         row["error_bound"] = float(bound[l, 0]) if bool(torch.isfinite(f_se[l])) else math.inf
         row["bounded"] = bool(bounded[l, 0] and f_det[l])
         row["ill_conditioned"] = not bool(f_det[l])
+        row["determined"] = bool(f_det[l]) and not row["bounded"]
+        row["reason"] = filter_reason(bool(fsol.determined[l, 0] and torch.isfinite(f_se[l])),
+                                      bool(precise[l, 0]), row["bounded"], row["error_bound"])
+        row.pop("posterior_to_prior", None)  # the filter's rule has no prior-ratio test
         if row["ill_conditioned"] and f_ill is None:
             f_ill = l
     fk = S @ f

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from .brdf_models import diffuse_filter, microfacet_sh_filter
-from .conditioning import band_statistics
+from .conditioning import apply_band_verdict, band_statistics
 from .sh import band_of_index, real_sh
 from .solve import LinearSolution, noise_weights, solve_wls
 
@@ -140,4 +140,5 @@ def fit_decomposed_lighting(normal: torch.Tensor, reflected: torch.Tensor,
     sol = solve_wls(design, b, w, band, rule=rule, noise_known=variance is not None,
                     band_penalty=pen, noise_source=src)
     rows, ill = band_statistics(sol)
+    apply_band_verdict(sol, rows)
     return sol.coefficients[:k], sol.coefficients[k:], sol, rows, ill

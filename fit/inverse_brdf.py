@@ -28,7 +28,14 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
-from .conditioning import FILTER_DEFINITION, band_statistics, filter_band_status, noise_level
+from .conditioning import (
+    FILTER_DEFINITION,
+    apply_band_verdict,
+    band_statistics,
+    filter_band_status,
+    filter_reason,
+    noise_level,
+)
 from .memory import check_dense_memory
 from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
@@ -203,6 +210,10 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         row["error_bound"] = float(bound[l].max()) if bool(reached[l].all()) else math.inf
         row["bounded"] = bool(reached[l].all() and bounded[l].any() and determined[l].all())
         row["ill_conditioned"] = not bool(determined[l].all())
+        row["determined"] = bool(determined[l].all()) and not row["bounded"]
+        row["reason"] = filter_reason(bool(sol.determined[l].all()), bool(precise[l].all()),
+                                      row["bounded"], row["error_bound"], l in aliased)
+        row.pop("posterior_to_prior", None)  # the filter's rule has no prior-ratio test
         if l in aliased:
             row["aliased"] = True
         if row["ill_conditioned"] and ill is None:
@@ -427,6 +438,7 @@ def fit_brdf_isotropic(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.T
     sol = solve_wls(a, b, w, band, rule=rule, noise_known=variance is not None,
                     band_penalty=torch.ones(lmax + 1, dtype=torch.float64), noise_source=src)
     rows, ill = band_statistics(sol)
+    apply_band_verdict(sol, rows)
     nch = b.shape[1]
     coef = torch.zeros(lmax + 1, pmax + 1, lmax + 1, nch, dtype=torch.float64)
     se = torch.full_like(coef, math.inf)

@@ -29,6 +29,7 @@ from .conditioning import (
     ERROR_BOUND_LIMIT,
     HIDDEN_SOURCE_LMAX,
     ZERO_BAND_LIMIT,
+    apply_band_verdict,
     band_prior_weakening,
     band_statistics,
     band_statistics_bayes,
@@ -889,6 +890,7 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
                         band_penalty=band_penalty, noise_source=src + " (IRLS at the fit)",
                         chunk=chunk, channel_scale=cscale)
     rows, ill = band_statistics(sol)
+    apply_band_verdict(sol, rows)
     eps = noise_level(sol)
     pred_model = spec.model if spec.model != "lambertian" else "lambertian"
     params = {"s": spec.s} if spec.model == "phong" else {"sigma": spec.sigma}
