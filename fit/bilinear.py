@@ -44,6 +44,7 @@ from brdfcap.core.errors import FitError
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import (
     FILTER_DEFINITION,
+    band_determined,
     band_statistics,
     data_resolved,
     filter_band_status,
@@ -436,9 +437,12 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     sol_l.stderr = torch.where(sol_l.determined, torch.maximum(sol_l.stderr, se_l),
                                torch.full_like(se_l, math.inf))
     # bands judged on the coefficients no ambiguity touches (conditioning.band_statistics);
-    # the flags stay per coefficient: untouched, and set by the data rather than the penalty
+    # a coefficient is determined when untouched, set by the data rather than the penalty, and
+    # its band determined or bounded (the untouched coefficients of a band may be the near-zero
+    # ones: their claim is then the bound, with finite intervals)
     rows, ill = band_statistics(sol_l, exclude=amb_mask)
-    sol_l.determined = sol_l.determined & data_resolved(sol_l)
+    sol_l.determined = (sol_l.determined & data_resolved(sol_l)
+                        & band_determined(rows, sol_l.band, nch, bounded=True))
     sol_l.stderr = torch.where(sol_l.determined, sol_l.stderr,
                                torch.full_like(sol_l.stderr, math.inf))
     eps = noise_level(sol_l)

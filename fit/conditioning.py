@@ -129,47 +129,57 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
             continue
         ex = torch.zeros_like(sol.determined[sel]) if exclude is None else exclude[sel]
         use = ~ex
+        has = use.any(0)  # (C,) channels with a coefficient left to judge
         spanned = sol.determined[sel] | ex
-        ratio = torch.where(use, 1.0 - sol.resolution[sel], torch.zeros_like(x[sel]))
-        ratio = ratio.clamp_min(0.0)
-        touched_all = not bool(use.any(0).all())  # some channel has no coefficient left
-        resolved = bool(spanned.all()) and bool((ratio <= RATIO_LIMIT).all()) \
-            and not touched_all
-        xs = torch.where(use, x[sel], torch.zeros_like(x[sel]))
-        se = torch.where(use, sol.stderr[sel], torch.zeros_like(x[sel]))
+        zero = torch.zeros_like(x[sel])
+        ratio = torch.where(use, 1.0 - sol.resolution[sel], zero).clamp_min(0.0)
+        resolved = spanned.all(0) & (ratio <= RATIO_LIMIT).all(0) & has  # (C,)
+        xs = torch.where(use, x[sel], zero)
+        se = torch.where(use, sol.stderr[sel], zero)
         norm = xs.norm(dim=0)
-        bound = band_error_bound(se ** 2, norm) if resolved else \
-            torch.full((nch,), math.inf, dtype=torch.float64)
-        precise = bool((bound <= ERROR_BOUND_LIMIT).all())
-        bounded = False
-        if resolved and not precise and bool(torch.isfinite(se).all()):
+        bound = torch.where(resolved, band_error_bound(se ** 2, norm),
+                            torch.full((nch,), math.inf, dtype=torch.float64))
+        precise = bound <= ERROR_BOUND_LIMIT
+        bounded = torch.zeros(nch, dtype=torch.bool)
+        if bool((resolved & ~precise).any()):
             # P(||x_l|| < ZERO_BAND_LIMIT * scale) >= level, per coefficient by a union bound
             # (each coefficient within lim/sqrt(n_l) of 0 with probability 1 - (1-level)/n_l)
             nl = int(sel.sum())
-            lim = ZERO_BAND_LIMIT * scale / math.sqrt(nl)
+            lim = (ZERO_BAND_LIMIT * scale / math.sqrt(nl))[None, :]
             tail = (1.0 - ERROR_BOUND_LEVEL) / nl
-            hi = ((lim[None, :] - xs) / se.clamp_min(1e-300)).cpu().numpy()
-            lo = ((-lim[None, :] - xs) / se.clamp_min(1e-300)).cpu().numpy()
-            inside = torch.as_tensor(ndtr(hi) - ndtr(lo))
-            bounded = bool((inside >= 1.0 - tail).all())
-        det = resolved and precise
+            sc = se.clamp_min(1e-300)
+            inside = torch.as_tensor(ndtr(((lim - xs) / sc).cpu().numpy())
+                                     - ndtr(((-lim - xs) / sc).cpu().numpy()))
+            inside = torch.where(use.cpu(), inside, torch.ones_like(inside))
+            bounded = (resolved & ~precise & torch.isfinite(se).all(0)
+                       & (inside >= 1.0 - tail).all(0))
+        det_c = resolved & precise
+        ok_c = det_c | bounded
+        judged = has if bool(has.any()) else torch.ones_like(has)
+        det = bool(has.any()) and bool(det_c[judged].all())
+        bnd = bool(has.any()) and not det and bool(ok_c[judged].all())
+        worst = torch.nonzero(judged & ~ok_c).flatten()
+        wc = int(worst[0]) if worst.numel() else 0
         if det:
             reason = "determined"
-        elif bounded:
+        elif bnd:
             reason = (f"determined: no power above {100 * ZERO_BAND_LIMIT:g}% of the quantity's "
                       f"scale (probability {ERROR_BOUND_LEVEL:g}); the band is (nearly) empty")
-        elif touched_all:
+        elif not bool(has.any()):
             reason = "every coefficient of the band is touched by a listed ambiguity"
-        elif not bool(spanned.all()):
+        elif not bool(spanned[:, wc].all()):
             reason = (f"not resolved: some coefficient's unregularised resolution is below "
                       f"{RESOLUTION_LIMIT:g} (the filter vanishes, the samples do not span "
                       f"the band, or too few samples)")
-        elif not resolved:
-            reason = (f"set by the penalty: posterior/prior variance {float(ratio.max()):.2g} "
-                      f"(some coefficient above {RATIO_LIMIT:g})")
+        elif not bool(resolved[wc]):
+            reason = (f"set by the penalty: posterior/prior variance "
+                      f"{float(ratio[:, wc].max()):.2g} (some coefficient above {RATIO_LIMIT:g})")
         else:
-            reason = (f"imprecise: band norm error up to {100 * float(bound.max()):.3g}% at "
+            reason = (f"imprecise: band norm error up to {100 * float(bound[wc]):.3g}% at "
                       f"probability {ERROR_BOUND_LEVEL:g} (> {100 * ERROR_BOUND_LIMIT:g}%)")
+        if bool(ex.any()) and bool(has.any()):
+            reason += " (judged on the coefficients no listed ambiguity touches)"
+        fin_b = bound[judged & torch.isfinite(bound)]
         rel = sol.stderr_unregularised[sel] / dc
         sv = sol.band_singular[l] if l < len(sol.band_singular) else torch.zeros(1)
         smax, smin = float(sv.max()), float(sv.min())
@@ -182,12 +192,16 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
             "median_snr": float(sol.snr[sel].median()),
             "resolution": float(sol.resolution[sel].median()),
             "posterior_to_prior": float(ratio.max()),
-            "error_bound": float(bound.max()),
-            "determined": det, "bounded": bounded,
-            "ill_conditioned": not (det or bounded),
+            "error_bound": float(fin_b.max()) if bool(resolved[judged].all()) and fin_b.numel()
+            else math.inf,
+            "determined": det, "bounded": bnd,
+            "ill_conditioned": not (det or bnd),
             "reason": reason,
+            # per channel: "determined", "bounded" or "not" (problem 3 flags per coefficient)
+            "channels": ["determined" if bool(d) else "bounded" if bool(o) else "not"
+                         for d, o in zip(det_c, ok_c)],
         })
-        if not (det or bounded) and first is None:
+        if not (det or bnd) and first is None:
             first = l
     return rows, first
 
@@ -199,7 +213,7 @@ def apply_band_verdict(sol: LinearSolution, rows: list[dict]) -> None:
     where a coefficient is not determined (the product's convention: a finite error only
     where the data determine the value).
     """
-    sol.determined = sol.determined & band_determined(rows, sol.band)[:, None]
+    sol.determined = sol.determined & band_determined(rows, sol.band, sol.determined.shape[1])
     sol.stderr = torch.where(sol.determined, sol.stderr, torch.full_like(sol.stderr, math.inf))
 
 
@@ -212,15 +226,25 @@ def data_resolved(sol: LinearSolution) -> torch.Tensor:
     return (1.0 - sol.resolution) <= RATIO_LIMIT
 
 
-def band_determined(rows: list[dict], band: torch.Tensor) -> torch.Tensor:
-    """``(K,)`` bool: the coefficients whose band :func:`band_statistics` calls determined.
+def band_determined(rows: list[dict], band: torch.Tensor, nch: int, bounded: bool = False
+                    ) -> torch.Tensor:
+    """``(K, C)`` bool: the coefficients whose band :func:`band_statistics` calls determined.
 
-    A bounded band's coefficients are not (their claim is the band's norm bound, not their
-    values).
+    Per channel where the row says (``channels``), else the band's verdict in every channel. A
+    bounded band's coefficients are not (their claim is the band's norm bound, not their
+    values) unless ``bounded``.
     """
-    ok = {r["l"]: bool(r.get("determined", not r["ill_conditioned"])) for r in rows}
-    return torch.tensor([ok.get(int(l), False) for l in band.tolist()], dtype=torch.bool,
-                        device=band.device)
+    ok: dict[int, list[bool]] = {}
+    for r in rows:
+        ch = r.get("channels")
+        if ch is None:
+            v = bool(r.get("determined", not r["ill_conditioned"])
+                     or (bounded and r.get("bounded", False)))
+            ok[r["l"]] = [v] * nch
+        else:
+            ok[r["l"]] = [c == "determined" or (bounded and c == "bounded") for c in ch]
+    return torch.tensor([ok.get(int(l), [False] * nch) for l in band.tolist()],
+                        dtype=torch.bool, device=band.device).reshape(-1, nch)
 
 
 def noise_level(sol: LinearSolution) -> float:

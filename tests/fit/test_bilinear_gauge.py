@@ -65,7 +65,9 @@ def test_only_coefficients_an_ambiguity_moves_are_flagged():
     exactly 0 (the DC and the rest nonzero): the zero coefficients are not moved by any
     ambiguity, so they are reported determined, with finite errors whose 95% intervals contain
     0 — unless their estimate, ~1 s.e. from 0, times the admissible range (kd >= 0,
-    |f_l| <= 1) exceeds one s.e. (about half of them here); the clearly nonzero ones stay flagged.
+    |f_l| <= 1) exceeds one s.e. (about half of them here), or their band (judged on the
+    untouched coefficients, per channel) is neither precise nor bounded; the clearly nonzero
+    ones stay flagged.
     The old rule flagged whole bands in every channel.
 
     The lighting with its exact zeros is evaluated on a lat-long probe and rendered by the
@@ -98,6 +100,13 @@ def test_only_coefficients_an_ambiguity_moves_are_flagged():
     assert 0.90 <= float(inside.mean()) <= 1.0, float(inside.mean())
     # flags are per coefficient, not per band: some band holds both kinds
     band = band_of_index(lmax)
+    # the band verdicts (conditioning.band_statistics on the untouched coefficients, per
+    # channel) add their own flags: no coefficient of a band-channel the data leave imprecise is
+    # called determined, and those band-channels say why
+    chan = {r["l"]: r["channels"] for r in lt.bands}
+    ok = torch.tensor([[chan[int(l)][c] != "not" for c in range(3)] for l in band])
+    assert not bool(det[~ok].any())
+    assert all(r["reason"] for r in lt.bands if "not" in r["channels"])
     assert any(bool(det[band == l].any()) and not bool(det[band == l].all())
                for l in range(1, lmax + 1))
     amb = fit.ambiguities[2]
