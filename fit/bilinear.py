@@ -521,7 +521,9 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         row["determined"] = bool(f_det[l]) and not row["bounded"]
         row["reason"] = filter_reason(bool(fsol.determined[l, 0] and torch.isfinite(f_se[l])),
                                       bool(precise[l, 0]), row["bounded"], row["error_bound"])
-        row.pop("posterior_to_prior", None)  # the filter's rule has no prior-ratio test
+        # the filter's rule has no prior-ratio test and one verdict for all channels
+        row.pop("posterior_to_prior", None)
+        row.pop("channels", None)
         if row["ill_conditioned"] and f_ill is None:
             f_ill = l
     fk = S @ f

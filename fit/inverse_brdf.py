@@ -213,7 +213,9 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         row["determined"] = bool(determined[l].all()) and not row["bounded"]
         row["reason"] = filter_reason(bool(sol.determined[l].all()), bool(precise[l].all()),
                                       row["bounded"], row["error_bound"], l in aliased)
-        row.pop("posterior_to_prior", None)  # the filter's rule has no prior-ratio test
+        # the filter's rule has no prior-ratio test and one verdict for all channels
+        row.pop("posterior_to_prior", None)
+        row.pop("channels", None)
         if l in aliased:
             row["aliased"] = True
         if row["ill_conditioned"] and ill is None:
