@@ -7,6 +7,7 @@ each other or ``conftest`` by name.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
@@ -17,7 +18,7 @@ from brdfcap.reconstruct.mesh import uv_sphere
 
 __all__ = ["unit", "random_lighting", "views_above", "sh_probe", "render_reference",
            "scene_text", "TINY_SCENE", "make_tiny_capture", "reference_dir", "SHADOW_ALBEDO",
-           "write_ply", "shadow_scene_toml", "PHONG_MATERIAL", "NOISE"]
+           "write_ply", "shadow_scene_toml", "PHONG_MATERIAL", "NOISE", "texel_phong_sphere"]
 
 #: A tiny (48x48 px, 2 views) noisy Lambertian sphere under Grace Cathedral (R&H 2001).
 TINY_SCENE = """
@@ -121,6 +122,41 @@ def render_reference(spec, light: torch.Tensor, normal: torch.Tensor, wo: torch.
     invert (issue 13).
     """
     return render_environment(spec, normal, wo, sh_probe(light, height), rel_tol=rel_tol)
+
+
+def texel_phong_sphere(s: float, seed: int, height: int = 64, n: int = 2000,
+                       rel_noise: float = 0.01) -> dict:
+    """Render a Phong sphere under a random environment by direct summation over its texels.
+
+    A band-limited power-law environment (to l = 40, slope 2, DC 3) is drawn as a
+    ``height × 2·height`` lat-long image; ``n`` random reflected directions see R&H's lobe
+    ``(s+1)/(2π) max(r·ω, 0)^s`` summed over the texels with their solid angles (no SH filter
+    involved), plus Gaussian noise of ``rel_noise`` × the mean radiance. The truth of a fit is
+    the pixel-quadrature SH projection of ``image``
+    (``project_envmap(image, lmax, quadrature="pixel")``).
+
+    Returns ``{"reflected", "radiance", "variance", "image", "spec"}``.
+    """
+    from brdfcap.fit.brdf_models import BRDFSpec
+    from brdfcap.fit.envmap import latlong_directions, latlong_weights, reconstruct_envmap
+    from brdfcap.fit.sh import band_of_index
+
+    g = torch.Generator().manual_seed(seed)
+    lt = 40
+    band = band_of_index(lt).to(torch.float64)
+    c = torch.randn((lt + 1) ** 2, 3, generator=g, dtype=torch.float64) * (
+        0.5 / (band + 1))[:, None]
+    c[0] = 3.0
+    img = reconstruct_envmap(c, height, 2 * height)
+    d = latlong_directions(height, 2 * height).reshape(-1, 3)
+    lw = img.reshape(-1, 3) * latlong_weights(height, 2 * height, "pixel").reshape(-1)[:, None]
+    r = unit(n, g)
+    b = ((r @ d.T).clamp_min(0.0) ** s * (s + 1) / (2 * math.pi)) @ lw
+    sd = rel_noise * float(b.abs().mean())
+    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=s)
+    return {"reflected": r, "radiance": bn, "variance": torch.full_like(b, sd ** 2),
+            "image": img, "spec": spec}
 
 
 #: ``[material]`` of a glossy test sphere (``scene_text(material=PHONG_MATERIAL)``).

@@ -12,40 +12,22 @@ from __future__ import annotations
 import math
 
 import pytest
-import torch
-from brdfcap.fit.brdf_models import BRDFSpec
-from brdfcap.fit.envmap import (
-    latlong_directions,
-    latlong_weights,
-    project_envmap,
-    reconstruct_envmap,
-)
+from brdfcap.fit.envmap import project_envmap
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.sh import band_of_index
 
-from brdfcap.testing import unit
+from brdfcap.testing import texel_phong_sphere
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _phong_sphere(s, seed, height, n=2000, rel_noise=0.01):
-    g = torch.Generator().manual_seed(seed)
-    lt = 40
-    band = band_of_index(lt).to(torch.float64)
-    c = torch.randn((lt + 1) ** 2, 3, generator=g, dtype=torch.float64) * (
-        0.5 / (band + 1))[:, None]
-    c[0] = 3.0
-    img = reconstruct_envmap(c, height, 2 * height)
-    d = latlong_directions(height, 2 * height).reshape(-1, 3)
-    lw = img.reshape(-1, 3) * latlong_weights(height, 2 * height, "pixel").reshape(-1)[:, None]
-    r = unit(n, g)
-    b = ((r @ d.T).clamp_min(0.0) ** s * (s + 1) / (2 * math.pi)) @ lw
-    sd = rel_noise * float(b.abs().mean())
-    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
-    spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=s)
+    sc = texel_phong_sphere(s, seed, height, n, rel_noise)
+    r = sc["reflected"]
     lmax = min(24, int(math.sqrt(2 * s * math.log(100))) + 3)
-    fit = fit_lighting(r, bn, lmax, spec, reflected=r, variance=torch.full_like(b, sd ** 2))
-    truth = project_envmap(img, lmax, quadrature="pixel")
+    fit = fit_lighting(r, sc["radiance"], lmax, sc["spec"], reflected=r,
+                       variance=sc["variance"])
+    truth = project_envmap(sc["image"], lmax, quadrature="pixel")
     bl = band_of_index(lmax)
     err = [float(((fit.coefficients[bl == l] - truth[bl == l]).norm(dim=0)
                   / truth[bl == l].norm(dim=0)).max()) for l in range(lmax + 1)]

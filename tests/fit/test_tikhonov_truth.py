@@ -15,46 +15,24 @@ pixel-quadrature SH projection of the same image (as ``test_lstar_truth.py``).
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
-from brdfcap.fit.brdf_models import BRDFSpec
-from brdfcap.fit.envmap import (
-    latlong_directions,
-    latlong_weights,
-    project_envmap,
-    reconstruct_envmap,
-)
+from brdfcap.fit.envmap import project_envmap
 from brdfcap.fit.inverse_lighting import fit_lighting
 from brdfcap.fit.records import lighting_json
 from brdfcap.fit.sh import band_of_index
 
-from brdfcap.testing import unit
+from brdfcap.testing import texel_phong_sphere
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def _phong_sphere(s: float, seed: int, rule: str, height: int = 64, n: int = 2000):
-    g = torch.Generator().manual_seed(seed)
-    lt = 40
-    band = band_of_index(lt).to(torch.float64)
-    c = torch.randn((lt + 1) ** 2, 3, generator=g, dtype=torch.float64) * (
-        0.5 / (band + 1))[:, None]
-    c[0] = 3.0
-    img = reconstruct_envmap(c, height, 2 * height)
-    d = latlong_directions(height, 2 * height).reshape(-1, 3)
-    lw = img.reshape(-1, 3) * latlong_weights(height, 2 * height, "pixel").reshape(-1)[:, None]
-    r = unit(n, g)
-    b = ((r @ d.T).clamp_min(0.0) ** s * (s + 1) / (2 * math.pi)) @ lw
-    sd = 0.01 * float(b.abs().mean())
-    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
-    spec = BRDFSpec("phong", kd=[0.0, 0.0, 0.0], ks=[1.0, 1.0, 1.0], s=s)
-    lmax = 15
-    fit = fit_lighting(r, bn, lmax, spec, reflected=r, variance=torch.full_like(b, sd ** 2),
-                       method="tikhonov", rule=rule)
-    truth = project_envmap(img, lmax, quadrature="pixel")
-    return fit, truth
+def _phong_sphere(s: float, seed: int, rule: str):
+    sc = texel_phong_sphere(s, seed)
+    r, lmax = sc["reflected"], 15
+    fit = fit_lighting(r, sc["radiance"], lmax, sc["spec"], reflected=r,
+                       variance=sc["variance"], method="tikhonov", rule=rule)
+    return fit, project_envmap(sc["image"], lmax, quadrature="pixel")
 
 
 @pytest.mark.parametrize("rule", ["gcv", "discrepancy", "none"])
