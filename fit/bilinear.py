@@ -50,15 +50,22 @@ from .conditioning import (
     filter_band_status,
     filter_reason,
     noise_level,
+    residual_adequacy,
 )
 from .inverse_brdf import horizon_keep, horizon_lines
 from .lighting import SHFit
 from .memory import check_dense_memory
 from .records import conditioning_json, lighting_json
 from .sh import band_of_index, real_sh
-from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
+from .solve import (
+    RESOLUTION_LIMIT,
+    LinearSolution,
+    drop_nonfinite_directions,
+    noise_weights,
+    solve_wls,
+)
 
-__all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL", "NULL_COMPONENT_MIN"]
+__all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL", "NULL_COMPONENT_MIN", "PRODUCT_NULL_COSINE"]
 
 #: Eigenvalues of the Jacobi-scaled joint normal matrix below this fraction of the largest are
 #: exact ambiguities (null directions); float64 normal equations resolve ~1e-16, the structural
@@ -66,6 +73,10 @@ __all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL", "NULL_COMPONENT_MIN"]
 NULL_RTOL = 1e-10
 #: Components of a unit null direction (Jacobi-scaled) below this are round-off, not ambiguity.
 NULL_COMPONENT_MIN = 1e-6
+#: A gauge-invariant product is touched by an ambiguity when the cosine between its gradient and
+#: the null direction exceeds this (:func:`_gauge_invariant`): computed null directions are
+#: accurate to ~1e-5, a product an ambiguity moves has a cosine of order 1.
+PRODUCT_NULL_COSINE = 1e-3
 
 
 def _gauge_range(v: torch.Tensor, kd: torch.Tensor, f: torch.Tensor, off: int, lb: int,
@@ -111,6 +122,9 @@ class BilinearFit:
     horizon: dict | None = None  # rim samples left out (inverse_brdf.horizon_keep)
     #: (brdf_lmax+1,) bool: filter bands determined (conditioning.FILTER_DEFINITION)
     filter_determined: torch.Tensor | None = None
+    #: conditioning.residual_adequacy of the fitted samples, its ``widen`` applied to every
+    #: error (issue 12: a model that does not explain the data widens its claims)
+    adequacy: dict | None = None
 
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
@@ -151,7 +165,7 @@ class BilinearFit:
                 "factorisation": {"iterations": self.iterations, "converged": self.converged,
                                   "chi2_history": self.history[-10:]},
                 "ambiguities": self.ambiguities, "conditioning": cond,
-                "horizon": self.horizon,
+                "horizon": self.horizon, "adequacy": self.adequacy,
                 "gauge_invariant": self._gauge_json()}
 
     def _gauge_json(self) -> dict:
@@ -188,7 +202,8 @@ def _lstsq(g: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
 def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
                  lmax: int, brdf_lmax: int = 8, variance: torch.Tensor | None = None,
                  rule: str = "gcv", model: str = "phong", s0: float = 32.0,
-                 max_iter: int = 50, tol: float = 1e-6, horizon_cut: bool = True) -> BilinearFit:
+                 max_iter: int = 50, tol: float = 1e-6, horizon_cut: bool = True,
+                 view: torch.Tensor | None = None) -> BilinearFit:
     """Recover lighting ``L``, albedo ``kd`` and specular filter ``f_l`` jointly (module doc).
 
     Parameters
@@ -212,6 +227,13 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         the radial model ``Σ f_l L_lm Y_lm(r)`` integrates the whole lobe, and rim samples where
         the horizon cuts it bias every factor (``docs/fitting.md``, "Problem 3: ambiguities").
         ``prediction`` stays over every sample.
+    view : torch.Tensor, optional
+        ``(N,)`` view index of each sample (scan order within a view): the residual's lag-1
+        autocorrelation is taken within views. The fit's adequacy
+        (:func:`~brdfcap.fit.conditioning.residual_adequacy` of the fitted samples) is stated in
+        ``adequacy`` and its ``widen`` — the AR(1) variance inflation of a spatially structured
+        residual, as problem 1's — scales every error (lighting, kd, filter, products) before
+        the band verdicts, on top of ``sqrt(χ²/ν)``.
 
     Returns
     -------
@@ -221,12 +243,13 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     if horizon_cut:
         kw = dict(lmax=lmax, brdf_lmax=brdf_lmax, rule=rule, model=model, s0=s0,
                   max_iter=max_iter, tol=tol, horizon_cut=False)
-        first = fit_bilinear(normal, reflected, radiance, variance=variance, **kw)
+        first = fit_bilinear(normal, reflected, radiance, variance=variance, view=view, **kw)
         keep, info = horizon_keep(normal, reflected, first.filter[:, None])
         if keep is not None:
             try:
                 out = fit_bilinear(normal[keep], reflected[keep], radiance[keep],
-                                   variance=None if variance is None else variance[keep], **kw)
+                                   variance=None if variance is None else variance[keep],
+                                   view=None if view is None else view[keep], **kw)
             except FitError:
                 keep = None
                 info["kept"] = info["of"]
@@ -383,10 +406,25 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
             converged = True
             break
 
+    # the model's adequacy on the fitted samples; a structured residual widens every error
+    # (AR(1) inflation, as problem 1's conditioning.model_adequacy), on top of sqrt(chi2/nu)
+    adequacy = residual_adequacy(b, _predict(yn, yr, S @ f, L, kd), var, view=view,
+                                 n_params=np_, widen=True)
+    widen2 = float(adequacy["widen"]) ** 2
+
     # ambiguities: null directions of the joint Gauss-Newton normal matrix (Jacobi-scaled)
     H, _ = _hessian(L, kd, f)
-    dsc = torch.diagonal(H).clamp_min(1e-300).rsqrt()
-    ev, u = torch.linalg.eigh(H * dsc[:, None] * dsc[None, :])
+    # parameters no sample sees at all (filter bands above lmax: no lighting band to carry
+    # them) have a zero row; left in, their exact null directions mix with the structural
+    # ambiguities in the degenerate null space and, scaled by 1/sqrt(0), swamp them (the DC
+    # split then moved no coefficient by more than 1e-150 and was never flagged). They are
+    # taken out of the analysis and reported as unreached (error inf).
+    seen = torch.diagonal(H) > 0
+    dsc = torch.where(seen, torch.diagonal(H).clamp_min(1e-300).rsqrt(), torch.zeros_like(H[0]))
+    ix = torch.nonzero(seen).flatten()
+    ev, us = torch.linalg.eigh((H * dsc[:, None] * dsc[None, :])[ix][:, ix])
+    u = H.new_zeros(np_, ev.shape[0])
+    u[ix] = us
     null = ev < NULL_RTOL * ev.max().clamp_min(1e-300)
     labels = ([("lighting", int(band[i])) for c in range(nch) for i in range(k)]
               + [("filter", l) for l in range(1, lb + 1)] + [("kd", c) for c in range(nch)])
@@ -395,17 +433,20 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     hinv = (u[:, keep] / ev[keep]) @ u[:, keep].T * dsc[:, None] * dsc[None, :]
     nobs = int((w > 0).sum())
     chi2_joint = rss / max(nobs - int(keep.sum()), 1)
-    sig2 = max(chi2_joint, 1.0) if var is not None else chi2_joint
+    sig2 = (max(chi2_joint, 1.0) if var is not None else chi2_joint) * widen2
     se_joint = (torch.diagonal(hinv).clamp_min(0) * sig2).sqrt()
+    se_joint = torch.where(seen, se_joint, torch.full_like(se_joint, math.inf))
     # per-parameter flags: a coefficient is touched by an exact ambiguity when moving along its
     # null direction over the physically admissible range (_gauge_range) moves it by more than
     # its standard error; otherwise the spread of that range (uniform, variance range²/12) is
     # added to its variance (gauge_var)
     touched_p = torch.zeros(np_, dtype=torch.bool)
     gauge_var = torch.zeros(np_, dtype=f64)
+    nulls = []  # (direction, admissible range) of each exact ambiguity
     for j in torch.nonzero(null).flatten().tolist():
         v = dsc * u[:, j]
         lo, hi = _gauge_range(v, kd, f, off, lb, nch)
+        nulls.append((v, lo, hi))
         moves = (u[:, j].abs() >= NULL_COMPONENT_MIN)
         spread = v.abs() * (hi - lo) if math.isfinite(hi - lo) else \
             torch.where(moves, torch.full_like(v, math.inf), torch.zeros_like(v))
@@ -559,12 +600,13 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                        f"(flagged per coefficient)" if ill is not None else
                        "none within lmax"},
     ]
-    nulls = [dsc * u[:, j] for j in torch.nonzero(null).flatten().tolist()]
-    gi = _gauge_invariant(sol_l.coefficients, f, kd, band, lmax, lb, hinv * sig2, nulls)
+    gi = _gauge_invariant(sol_l.coefficients, f, kd, band, lmax, lb, hinv * sig2, nulls,
+                          _product_resolution(yn, yr, w, band, lmax, lb))
     return BilinearFit(lighting=lt, kd=kd, kd_stderr=kd_se, filter=f, filter_stderr=f_se,
                        filter_bands=f_rows, filter_ill_conditioned_from_l=f_ill,
                        iterations=it, converged=converged, history=history, prediction=pred,
-                       ambiguities=amb, gauge_invariant=gi, filter_determined=f_det)
+                       ambiguities=amb, gauge_invariant=gi, filter_determined=f_det,
+                       adequacy=adequacy)
 
 
 def _band_sum(lmax: int, lb: int) -> torch.Tensor:
@@ -592,17 +634,53 @@ def _prediction(n, r, L, kd, f, lmax) -> torch.Tensor:
                     _band_sum(lmax, f.shape[0] - 1) @ f, L, kd)
 
 
-def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls) -> dict:
+def _product_resolution(yn, yr, w, band, lmax, lb) -> dict:
+    """Unregularised resolution of each product in *product space*, per channel.
+
+    The data are linear in the products (module doc): the DC total on a constant column,
+    ``kd Â_l/π L_lm`` on ``yn``'s column, ``f_l L_lm`` on ``yr``'s. A product is identifiable
+    when that design spans its column: the diagonal of ``G⁺G`` of the weighted product-space
+    Gram (Jacobi-scaled, eigenvalues below ``NULL_RTOL`` of the largest dropped) is at least
+    :data:`~brdfcap.fit.solve.RESOLUTION_LIMIT`. Returns ``{(kind, index): (C,) resolution}``.
+    """
+    a = diffuse_filter(lmax)
+    cols, keys = [yr[:, 0]], [("dc", 0)]
+    for i in range(1, yn.shape[1]):
+        l = int(band[i])
+        if float(a[l]) != 0.0:
+            cols.append(yn[:, i])
+            keys.append(("diffuse", i))
+        if l <= lb:
+            cols.append(yr[:, i])
+            keys.append(("specular", i))
+    A = torch.stack(cols, -1)
+    out = torch.zeros(len(keys), w.shape[1], dtype=torch.float64)
+    for c in range(w.shape[1]):
+        g = (A * w[:, c:c + 1]).T @ A
+        dsc = torch.diagonal(g).clamp_min(1e-300).rsqrt()
+        ev, u = torch.linalg.eigh(g * dsc[:, None] * dsc[None, :])
+        keep = ev > NULL_RTOL * ev.max().clamp_min(1e-300)
+        out[:, c] = (u[:, keep] ** 2).sum(-1)
+    return {k: out[j] for j, k in enumerate(keys)}
+
+
+def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls, resolution=None) -> dict:
     r"""Compute what the images determine whatever the gauge, with its covariance (issue 12).
 
     Products (R&H 2001 §5: through the specular term only ``f_l L_lm`` is seen; through the
     diffuse term ``kd Â_l L_lm``, eq. 8): ``specular`` ``f_l L_lm,c`` (``1 ≤ l ≤ min(lmax,
     brdf_lmax)``), ``diffuse`` ``kd_c Â_l/π L_lm,c`` (``l ≥ 1``, ``Â_l ≠ 0``) and the total DC
     ``(kd_c + f_0) L_00,c``. Covariance by the delta method ``J (σ² H⁺) Jᵀ`` with the joint
-    Gauss–Newton ``H`` (parameters: lighting channel-major, ``f_1..f_lb``, ``kd``). A product
-    whose gradient is not orthogonal to a null direction of ``H`` (|J·v| > 1e-6 |J||v|) is
-    *touched* by that ambiguity: it is not determined (its variance along ``v`` is unbounded) and
-    the ambiguity's index is listed.
+    Gauss–Newton ``H`` (parameters: lighting channel-major, ``f_1..f_lb``, ``kd``). ``nulls``:
+    ``(v, lo, hi)`` per exact ambiguity, its direction and admissible range of steps
+    (:func:`_gauge_range`). The data are a function of the products, so a product the samples
+    identify (``resolution``: :func:`_product_resolution` ≥ ``RESOLUTION_LIMIT`` in its
+    channel) is determined whatever the gauge: every exact ambiguity leaves it unchanged. Its
+    gradient is then orthogonal to every null direction in exact arithmetic, but not to a
+    computed one near a saddle of the bilinear map (a band whose lighting and filter are both
+    ~0: cosines up to 1e-3 measured), so the null directions decide only where the product
+    space does not (``resolution`` absent): a product is *touched* — not determined, the
+    ambiguity's index listed — when ``|J·v| > PRODUCT_NULL_COSINE |J||v|``.
     """
     f64 = torch.float64
     nch = L.shape[1]
@@ -634,13 +712,17 @@ def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls) -> dict:
                 labels.append(("diffuse", l, m, c, float(kd[c]) * float(a[l]) * float(lc[i])))
     jac = torch.stack(rows)
     pcov = jac @ cov @ jac.T
-    touched = []
-    for g in jac:
-        t = [j for j, v in enumerate(nulls)
-             if abs(float(g @ v)) > 1e-6 * float(g.norm() * v.norm()) + 1e-300]
-        touched.append(t)
     se = torch.diagonal(pcov).clamp_min(0.0).sqrt()
+    touched = [[j for j, (v, _, _) in enumerate(nulls)
+                if abs(float(g @ v)) > PRODUCT_NULL_COSINE * float(g.norm() * v.norm())]
+               for g in jac]
     det = [not t for t in touched]
+    if resolution is not None:
+        for j, (kind, l, m, c, _) in enumerate(labels):
+            res = resolution.get((kind, 0 if kind == "dc" else l * (l + 1) + m))
+            det[j] = res is not None and float(res[c]) >= RESOLUTION_LIMIT
+            if det[j]:
+                touched[j] = []  # identified: no exact ambiguity moves it
     se = torch.where(torch.tensor(det), se, torch.full_like(se, math.inf))
     return {"definition": "products the images determine whatever the gauge: specular f_l L_lm "
                           "(l >= 1), diffuse kd A_l/pi L_lm (A_l != 0), total DC (kd + f_0) L_00; "

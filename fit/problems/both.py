@@ -55,7 +55,7 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
     model = opts.brdf or (known.material or {}).get("model", "phong")
     res = fit_bilinear(samples.normal, samples.reflected, samples.radiance, opts.lmax,
                        brdf_lmax=opts.brdf_lmax, variance=samples.variance, rule=opts.rule,
-                       model=model)
+                       model=model, view=getattr(samples, "view", None))
     note = "joint Gauss-Newton errors (the lighting's uncertainty included)"
     est = [lighting_estimate(res.lighting),
            Estimate("kd", res.kd, res.kd_stderr, "channel", note=note),

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
 from brdfcap.fit.brdf_models import BRDFSpec, diffuse_filter, phong_sh_filter
@@ -21,14 +22,21 @@ from brdfcap.fit.sh import band_of_index
 from brdfcap.testing import random_lighting, render_reference, unit, views_above
 
 
-def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples):
+@pytest.mark.parametrize("brdf_lmax", [6, 10])
+def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples, brdf_lmax):
+    """Also with filter bands above the lighting's lmax (the CLI's default ``--brdf-lmax 8``
+    over ``--lmax`` up to 7): those bands are unreached (error inf) and are kept out of the
+    null-space analysis — left in, their zero rows swamped the DC split's null direction (it
+    moved nothing by more than 1e-150, so no lighting coefficient was flagged).
+    """
     s = phong_reference_samples
     spec, light, n, r, b = s["spec"], s["light"], s["normal"], s["reflected"], s["radiance"]
     lmax = 6
     g = torch.Generator().manual_seed(3)
     sd = 0.005 * float(b.abs().mean())
     bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
-    fit = fit_bilinear(n, r, bn, lmax, brdf_lmax=lmax, variance=torch.full_like(b, sd ** 2))
+    fit = fit_bilinear(n, r, bn, lmax, brdf_lmax=brdf_lmax,
+                       variance=torch.full_like(b, sd ** 2))
     gi = fit.gauge_invariant
     band = band_of_index(lmax)
     fs = 0.5 * phong_sh_filter(20.0, lmax)
@@ -54,6 +62,13 @@ def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples
     assert len(band) == (lmax + 1) ** 2 and math.isfinite(float(gi["value"].sum()))
     js = fit.to_results()["gauge_invariant"]
     assert len(js["stderr"]) == len(js["quantities"])
+    # the DC split (kd against the specular DC, R&H 2001 §5) is found in both cases: kd and the
+    # lighting coefficients with Â_l != 0 it moves are flagged, the filter above lmax unreached
+    dc_split = [d for d in fit.to_results()["ambiguities"][2]["null_directions"]
+                if "kd:0" in d]
+    assert dc_split and "lighting:0" in dc_split[0]
+    assert not bool(fit.lighting.determined[band == 0].any())
+    assert torch.isinf(fit.filter_stderr[lmax + 1:]).all()
 
 
 def test_only_coefficients_an_ambiguity_moves_are_flagged():
