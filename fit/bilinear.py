@@ -262,6 +262,10 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         out.prediction = _prediction(n_all, r_all, out.lighting.coefficients, out.kd,
                                      out.filter, lmax)
         out.horizon = info
+        if out.adequacy is not None:
+            out.adequacy["verdict"] += (f" (judged on the {info['kept']} samples fitted; the "
+                                        f"{info['of'] - info['kept']} rim samples left out are "
+                                        f"not judged)")
         return out
     n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
     var = None if variance is None else variance.to(f64)
@@ -468,6 +472,9 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
 
     sol_l = solve_wls(design_l, b, w, band, rule=rule, noise_known=var is not None,
                       noise_source=src)
+    # R&H's noise level for the analytic prediction: the DC term's relative error given the
+    # BRDF (before the ambiguities flag it; a gauge-touched L00 would make it inf)
+    eps = noise_level(sol_l)
     # uncertainty = joint; coefficients in an exact ambiguity = not determined
     se_l = se_joint[: nch * k].reshape(nch, k).T
     amb_mask = touched_p[: nch * k].reshape(nch, k).T  # (K, C): material null components only
@@ -486,7 +493,6 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                         & band_determined(rows, sol_l.band, nch, bounded=True))
     sol_l.stderr = torch.where(sol_l.determined, sol_l.stderr,
                                torch.full_like(sol_l.stderr, math.inf))
-    eps = noise_level(sol_l)
     lt = SHFit(lmax=lmax, coefficients=sol_l.coefficients, stderr=sol_l.stderr,
                determined=sol_l.determined, chi2_reduced=sol_l.chi2_reduced,
                noise_source=src, bands=rows, ill_conditioned_from_l=ill,
