@@ -62,11 +62,16 @@ def test_rim_samples_are_left_out_and_the_products_come_back_inside_their_interv
         det = gi["determined"]
         z = ((gi["value"] - _truth(gi["quantities"], light, spec.kd.tolist())) / gi["stderr"])
         out[cut] = (float(f.lighting.chi2_reduced.max()), int(det.sum()), det.numel(),
-                    float((z[det].abs() < 1.96).double().mean()), f.horizon)
+                    float((z[det].abs() < 1.96).double().mean()), f.horizon, f.adequacy)
         assert f.prediction.shape == bn.shape  # over every sample, the rim included
     print(out)
     assert out[False][0] > 10.0 and out[False][3] < 0.8
-    chi2, ndet, ntot, cover, hz = out[True]
+    # the fit states its adequacy and says its errors carry the excess (not "lower bounds")
+    ad = out[False][5]
+    assert not ad["adequate"] and "inflated by sqrt(chi2/nu)" in " ".join(ad["likely_causes"])
+    assert "read them as lower bounds" not in ad["verdict"]
+    chi2, ndet, ntot, cover, hz, ad = out[True]
+    assert ad["adequate"] and f"judged on the {hz['kept']} samples fitted" in ad["verdict"]
     assert chi2 < 1.3 and ndet == ntot and 0.90 <= cover <= 0.99
     assert hz["kept"] < hz["of"] and 30.0 < hz["lobe_radius_deg"] < 45.0
     assert any(line.startswith("Horizon: ") for line in f.summary())
