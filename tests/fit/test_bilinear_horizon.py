@@ -40,9 +40,10 @@ def _truth(quantities, light, kd, ks=0.5, s=20.0):
 
 
 def test_rim_samples_are_left_out_and_the_products_come_back_inside_their_intervals():
-    """Rim kept: χ²/ν 279, 40 of 237 products determined, 47.5% of those inside their 95%
-    intervals; rim left out (755 of 1810 samples, the lobe's 38° radius from the first fit's
-    filter): χ²/ν 1.11, 237 of 237 determined, coverage 0.945 (measured).
+    """Rim kept: χ²/ν 279, 49.8% of the 237 products inside their 95% intervals; rim left out
+    (1207 of 1810 samples: the lobe's 53° radius from the first fit's filter, beyond which 1e-4
+    of its energy lies): χ²/ν 1.11, 237 of 237 determined, coverage 0.987 (measured; with the
+    1% radius of session 17, 38°: 755 left out, coverage 0.945).
     """
     spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
     g = torch.Generator().manual_seed(0)
@@ -73,5 +74,5 @@ def test_rim_samples_are_left_out_and_the_products_come_back_inside_their_interv
     chi2, ndet, ntot, cover, hz, ad = out[True]
     assert ad["adequate"] and f"judged on the {hz['kept']} samples fitted" in ad["verdict"]
     assert chi2 < 1.3 and ndet == ntot and 0.90 <= cover <= 0.99
-    assert hz["kept"] < hz["of"] and 30.0 < hz["lobe_radius_deg"] < 45.0
+    assert hz["kept"] < hz["of"] and 45.0 < hz["lobe_radius_deg"] < 60.0 and hz["lobe_tail"] <= 1e-4
     assert any(line.startswith("Horizon: ") for line in f.summary())

@@ -130,8 +130,10 @@ def test_the_problem_solves_until_the_filter_tail_is_empty(pisa_phong):
 def test_rim_samples_whose_lobe_the_horizon_cuts_are_left_out(pisa_phong):
     """R&H's radial model integrates the whole lobe about ``r``; near the rim the horizon cuts
     it and those samples pull the low bands down. ``fit_brdf_sh`` fits again without the
-    samples whose reflected direction is within the lobe's 1% radius of the horizon (from the
-    first fit's filter: 38° for s = 20; 698 of 1540 samples here). Measured: bands 0-1 11-14
+    samples whose reflected direction is within the lobe's radius of the horizon (from the
+    first fit's filter, 1e-4 of the lobe's energy beyond it: 54° for s = 20; with session
+    17's 1% radius, 38°, 698 of 1540 samples were left out and the numbers below measured).
+    Measured: bands 0-1 11-14
     s.e. off, χ²/ν 82 and kd 0.335 (truth 0.3) with them; without them every band within 1.9
     s.e., χ²/ν 1.03, kd within 0.0013 (on 2704 samples of the same kind: 18 s.e. → 2.7).
     """
@@ -149,5 +151,5 @@ def test_rim_samples_whose_lobe_the_horizon_cuts_are_left_out(pisa_phong):
     assert out[False][0] > 5.0 and out[False][2] > 5.0  # the bias is there and shows
     assert out[True][1] < 3.5 and out[True][2] < 1.3 and out[True][3] < 0.003
     h = out[True][4]
-    assert 30.0 < h["lobe_radius_deg"] < 45.0 and h["kept"] < h["of"]
+    assert 45.0 < h["lobe_radius_deg"] < 60.0 and h["kept"] < h["of"] and h["lobe_tail"] <= 1e-4
     assert "rim samples left out" in h["note"]
