@@ -116,26 +116,30 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         (worst coefficient), ``error_bound`` (worst channel), ``determined``, ``bounded``,
         ``ill_conditioned`` and ``reason``.
     """
-    x = sol.coefficients
+    # the verdicts are a few numbers per band: computed on the CPU whatever the fit's device
+    x = sol.coefficients.detach().cpu()
     nch = x.shape[1]
-    x0 = sol.coefficients_unregularised
-    dc = x0[0].abs().clamp_min(1e-300)
+    dc = sol.coefficients_unregularised[0].detach().cpu().abs().clamp_min(1e-300)
+    det_all, res_all = sol.determined.cpu(), sol.resolution.detach().cpu()
+    se_all, seu_all = sol.stderr.detach().cpu(), sol.stderr_unregularised.detach().cpu()
+    snr_all, band_all = sol.snr.detach().cpu(), sol.band.cpu()
+    exclude = None if exclude is None else exclude.cpu()
     scale = (x.norm(dim=0) if reference is None else reference.to(x).expand(nch)).abs()
     rows, first = [], None
-    lmax = int(sol.band.max())
+    lmax = int(band_all.max())
     for l in range(lmax + 1):
-        sel = sol.band == l
+        sel = band_all == l
         if not bool(sel.any()):
             continue
-        ex = torch.zeros_like(sol.determined[sel]) if exclude is None else exclude[sel]
+        ex = torch.zeros_like(det_all[sel]) if exclude is None else exclude[sel]
         use = ~ex
         has = use.any(0)  # (C,) channels with a coefficient left to judge
-        spanned = sol.determined[sel] | ex
+        spanned = det_all[sel] | ex
         zero = torch.zeros_like(x[sel])
-        ratio = torch.where(use, 1.0 - sol.resolution[sel], zero).clamp_min(0.0)
+        ratio = torch.where(use, 1.0 - res_all[sel], zero).clamp_min(0.0)
         resolved = spanned.all(0) & (ratio <= RATIO_LIMIT).all(0) & has  # (C,)
         xs = torch.where(use, x[sel], zero)
-        se = torch.where(use, sol.stderr[sel], zero)
+        se = torch.where(use, se_all[sel], zero)
         norm = xs.norm(dim=0)
         bound = torch.where(resolved, band_error_bound(se ** 2, norm),
                             torch.full((nch,), math.inf, dtype=torch.float64))
@@ -180,7 +184,7 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         if bool(ex.any()) and bool(has.any()):
             reason += " (judged on the coefficients no listed ambiguity touches)"
         fin_b = bound[judged & torch.isfinite(bound)]
-        rel = sol.stderr_unregularised[sel] / dc
+        rel = seu_all[sel] / dc
         sv = sol.band_singular[l] if l < len(sol.band_singular) else torch.zeros(1)
         smax, smin = float(sv.max()), float(sv.min())
         rows.append({
@@ -189,8 +193,8 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
             "condition": smax / smin if smin > 0 else math.inf,
             "determined_fraction": float(spanned.double().mean()),
             "median_rel_stderr": float(rel.median()) if bool(spanned.all()) else math.inf,
-            "median_snr": float(sol.snr[sel].median()),
-            "resolution": float(sol.resolution[sel].median()),
+            "median_snr": float(snr_all[sel].median()),
+            "resolution": float(res_all[sel].median()),
             "posterior_to_prior": float(ratio.max()),
             "error_bound": float(fin_b.max()) if bool(resolved[judged].all()) and fin_b.numel()
             else math.inf,
