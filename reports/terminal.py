@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 
 from .numbers import fmt_num
-from .views import headline, lmax_suggestion, simulation_accuracy_note
+from .views import gauge_truth_text, headline, lmax_suggestion, simulation_accuracy_note
 
 __all__ = ["terminal_lines", "terminal_record"]
 
@@ -71,6 +71,8 @@ def terminal_lines(results: dict, out_dir: str | Path, max_warnings: int = 5) ->
         z = max(b["max_abs_z"] for b in det)
         lines.append(f"  vs ground truth: determined lighting bands within {fmt_num(z, 2)} "
                      f"std. errors" + simulation_accuracy_note(gt["lighting"], det, z))
+    if gt.get("gauge_invariant"):
+        lines.append("  vs ground truth: " + gauge_truth_text(gt["gauge_invariant"]))
     held = [b for b in ((gt.get("lighting") or {}).get("bands") or []) if "bound_holds" in b]
     if held:
         bad = [str(b["l"]) for b in held if not b["bound_holds"]]

@@ -19,6 +19,7 @@ from brdfcap.fit.solve import NO_NOISE_MODEL
 from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
 
 __all__ = ["headline", "brdf_parameter_rows", "conditioning_rows", "truth_comparison",
+           "gauge_truth_text",
            "rh_citation", "band_rows", "is_number_list", "truth_rows", "read_truth",
            "check_rows", "gauge_table", "lmax_suggestion"]
 
@@ -513,9 +514,54 @@ def truth_comparison(results: dict, truth: dict) -> dict | None:
             out["brdf"].append({"parameter": k, "true": tl.tolist(), "recovered": rl.tolist(),
                                 "stderr": el.tolist(),
                                 "z": [None if not math.isfinite(v) else float(v) for v in z]})
-    if out["lighting"] is None and not out["brdf"]:
+    out["gauge_invariant"] = _gauge_truth(results, truth, true_L)
+    if out["lighting"] is None and not out["brdf"] and out["gauge_invariant"] is None:
         return None
     return out
+
+
+def _gauge_truth(results: dict, truth: dict, true_L: np.ndarray | None) -> dict | None:
+    """Problem ``both``'s gauge-invariant products against the truth, or ``None``.
+
+    Where every lighting coefficient moves with an ambiguity the products are what the fit
+    claims (``results.gauge_invariant``, :func:`brdfcap.fit.bilinear._gauge_invariant`). Their
+    truth needs the rendered BRDF's radial filter exactly: a Phong lobe's
+    ``ks Λ_l ρ̂_l`` (R&H 2001 eq. 19, :func:`brdfcap.fit.brdf_models.phong_sh_filter`) with
+    the Lambertian ``kd Â_l/π`` (eq. 8); other models have no exact radial filter and are not
+    compared. Returns the z-scores' summary: count, 95% coverage, max |z|, mean z².
+    """
+    gi = results.get("gauge_invariant") or {}
+    tb = truth.get("brdf") or {}
+    par = tb.get("parameters") or {}
+    if not gi.get("quantities") or true_L is None or tb.get("model") != "phong" or \
+            par.get("s") is None:
+        return None
+    from brdfcap.fit.brdf_models import diffuse_filter, phong_sh_filter
+
+    nch = true_L.shape[1]
+    kd = np.resize(np.asarray(par.get("kd", truth.get("albedo", [0.0])), np.float64), nch)
+    ks = np.resize(np.asarray(par.get("ks", [1.0]), np.float64), nch)
+    lmax = max(int(q["l"]) for q in gi["quantities"])
+    fs = phong_sh_filter(float(par["s"]), lmax).numpy()
+    a = diffuse_filter(lmax).numpy()
+    z = []
+    for q, se in zip(gi["quantities"], gi.get("stderr") or []):
+        l, c = int(q["l"]), int(q["channel"])
+        i = l * (l + 1) + int(q["m"])
+        if se is None or not se > 0 or c >= nch:
+            continue
+        tl = float(true_L[i, c]) if i < true_L.shape[0] else 0.0
+        t = {"dc": tl * (kd[c] + ks[c] * fs[0]), "specular": ks[c] * fs[l] * tl,
+             "diffuse": kd[c] * a[l] * tl}.get(q["kind"])
+        if t is not None:
+            z.append((float(q["value"]) - t) / float(se))
+    if not z:
+        return None
+    za = np.abs(np.asarray(z))
+    return {"truth": "products of the simulated lighting and the rendered Phong lobe's radial "
+                     "filter (R&H 2001 eqs. 8, 19)",
+            "n": int(za.size), "coverage_95": float(np.mean(za <= 1.96)),
+            "max_abs_z": float(za.max()), "mean_z2": float(np.mean(za ** 2))}
 
 
 def simulation_accuracy_note(gt_lighting: dict, det: list[dict], zmax: float) -> str:
@@ -551,6 +597,9 @@ def truth_rows(gt: dict, results: dict) -> dict:
     zs = [abs(z) for b in gt.get("brdf") or [] for z in b["z"] if z is not None]
     if zs:  # the largest over every parameter and channel, not the first parameter's
         rows["headline"] = "BRDF parameters within " + fmt_num(max(zs), 2) + " std. errors"
+    gi = gt.get("gauge_invariant")
+    if gi:  # problem both: the products are the claim where the lighting moves with a gauge
+        rows["headline"] = gauge_truth_text(gi)
     for b in gt.get("brdf") or []:
         rows["brdf"].append([b["parameter"],
                              fmt_rgb_pm(b["recovered"], b["stderr"]), fmt_rgb(b["true"], 4),
@@ -580,6 +629,13 @@ def truth_rows(gt: dict, results: dict) -> dict:
                                   fmt_num(mz2, 2),
                                   _truth_verdict(b)])
     return rows
+
+
+def gauge_truth_text(gi: dict) -> str:
+    """One line on problem ``both``'s gauge-invariant products against the truth."""
+    return (f"{gi['n']} gauge-invariant products: {fmt_num(100 * gi['coverage_95'], 3)}% "
+            f"inside their 95% intervals, max |z| = {fmt_num(gi['max_abs_z'], 2)}, mean z² = "
+            f"{fmt_num(gi['mean_z2'], 2)} ({gi['truth']})")
 
 
 def _truth_verdict(band: dict) -> str:
