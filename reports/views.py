@@ -336,7 +336,7 @@ def conditioning_rows(results: dict) -> list[dict]:
 
 def band_rows(bands: list[dict]) -> tuple[list[str], list[list[str]]]:
     """Per-band statistics as a table: known columns first, then any extra numeric field."""
-    known = [("l", "l"), ("determined_fraction", "determined"),
+    known = [("l", "l"), ("determined_fraction", "coefficients spanned"),
              ("resolution", "resolution (model-resolution diagonal)"),
              ("median_rel_stderr", "median std. error / |L₀₀|"), ("median_snr", "median SNR"),
              ("singular_min", "σ_min"), ("singular_max", "σ_max"), ("condition", "condition"),
