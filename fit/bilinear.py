@@ -446,11 +446,11 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     # added to its variance (gauge_var)
     touched_p = torch.zeros(np_, dtype=torch.bool)
     gauge_var = torch.zeros(np_, dtype=f64)
-    nulls = []  # (direction, admissible range) of each exact ambiguity
+    nulls = []  # the direction of each exact ambiguity
     for j in torch.nonzero(null).flatten().tolist():
         v = dsc * u[:, j]
         lo, hi = _gauge_range(v, kd, f, off, lb, nch)
-        nulls.append((v, lo, hi))
+        nulls.append(v)
         moves = (u[:, j].abs() >= NULL_COMPONENT_MIN)
         spread = v.abs() * (hi - lo) if math.isfinite(hi - lo) else \
             torch.where(moves, torch.full_like(v, math.inf), torch.zeros_like(v))
@@ -678,10 +678,10 @@ def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls, resolution=None) -> d
     brdf_lmax)``), ``diffuse`` ``kd_c Â_l/π L_lm,c`` (``l ≥ 1``, ``Â_l ≠ 0``) and the total DC
     ``(kd_c + f_0) L_00,c``. Covariance by the delta method ``J (σ² H⁺) Jᵀ`` with the joint
     Gauss–Newton ``H`` (parameters: lighting channel-major, ``f_1..f_lb``, ``kd``). ``nulls``:
-    ``(v, lo, hi)`` per exact ambiguity, its direction and admissible range of steps
-    (:func:`_gauge_range`). The data are a function of the products, so a product the samples
-    identify (``resolution``: :func:`_product_resolution` ≥ ``RESOLUTION_LIMIT`` in its
-    channel) is determined whatever the gauge: every exact ambiguity leaves it unchanged. Its
+    the direction ``v`` of each exact ambiguity. The data are a function of the products, so a
+    product the samples identify (``resolution``: :func:`_product_resolution` ≥
+    ``RESOLUTION_LIMIT`` in its channel) is determined whatever the gauge: every exact ambiguity
+    leaves it unchanged. Its
     gradient is then orthogonal to every null direction in exact arithmetic, but not to a
     computed one near a saddle of the bilinear map (a band whose lighting and filter are both
     ~0: cosines up to 1e-3 measured), so the null directions decide only where the product
@@ -719,7 +719,7 @@ def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls, resolution=None) -> d
     jac = torch.stack(rows)
     pcov = jac @ cov @ jac.T
     se = torch.diagonal(pcov).clamp_min(0.0).sqrt()
-    touched = [[j for j, (v, _, _) in enumerate(nulls)
+    touched = [[j for j, v in enumerate(nulls)
                 if abs(float(g @ v)) > PRODUCT_NULL_COSINE * float(g.norm() * v.norm())]
                for g in jac]
     det = [not t for t in touched]

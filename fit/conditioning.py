@@ -151,10 +151,7 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
             nl = int(sel.sum())
             lim = (ZERO_BAND_LIMIT * scale / math.sqrt(nl))[None, :]
             tail = (1.0 - ERROR_BOUND_LEVEL) / nl
-            sc = se.clamp_min(1e-300)
-            inside = torch.as_tensor(ndtr(((lim - xs) / sc).cpu().numpy())
-                                     - ndtr(((-lim - xs) / sc).cpu().numpy()))
-            inside = torch.where(use.cpu(), inside, torch.ones_like(inside))
+            inside = torch.where(use, _inside_zero_band(xs, se, lim), torch.ones_like(xs))
             bounded = (resolved & ~precise & torch.isfinite(se).all(0)
                        & (inside >= 1.0 - tail).all(0))
         det_c = resolved & precise
@@ -415,12 +412,17 @@ def filter_band_status(value: torch.Tensor, stderr: torch.Tensor,
     bound = torch.stack([band_error_bound(var[l:l + 1], value[l].abs(), level)
                          for l in range(value.shape[0])])
     precise = bound <= ERROR_BOUND_LIMIT
-    lim = ZERO_BAND_LIMIT * value[0].abs()[None, :]
-    se = stderr.clamp_min(1e-300)
-    hi, lo = ((lim - value) / se).cpu().numpy(), ((-lim - value) / se).cpu().numpy()
-    inside = torch.as_tensor(ndtr(hi) - ndtr(lo), device=value.device)
+    inside = _inside_zero_band(value, stderr, ZERO_BAND_LIMIT * value[0].abs()[None, :])
     bounded = torch.isfinite(stderr) & (inside >= level) & ~precise
     return precise, bounded, bound
+
+
+def _inside_zero_band(value: torch.Tensor, stderr: torch.Tensor, lim: torch.Tensor
+                      ) -> torch.Tensor:
+    """``P(|x| < lim)`` under ``N(value, stderr²)``, elementwise (the *bounded* tests)."""
+    se = stderr.clamp_min(1e-300)
+    hi, lo = ((lim - value) / se).cpu().numpy(), ((-lim - value) / se).cpu().numpy()
+    return torch.as_tensor(ndtr(hi) - ndtr(lo), device=value.device)
 
 
 def filter_reason(reached: bool, precise: bool, bounded: bool, bound: float,

@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from brdfcap.fit.brdf_models import diffuse_filter, phong_sh_filter
 from brdfcap.fit.solve import NO_NOISE_MODEL
 
 from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
@@ -536,8 +537,6 @@ def _gauge_truth(results: dict, truth: dict, true_L: np.ndarray | None) -> dict 
     if not gi.get("quantities") or true_L is None or tb.get("model") != "phong" or \
             par.get("s") is None:
         return None
-    from brdfcap.fit.brdf_models import diffuse_filter, phong_sh_filter
-
     nch = true_L.shape[1]
     kd = np.resize(np.asarray(par.get("kd", truth.get("albedo", [0.0])), np.float64), nch)
     ks = np.resize(np.asarray(par.get("ks", [1.0]), np.float64), nch)
