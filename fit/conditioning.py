@@ -114,7 +114,9 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         (median standard error over ``|x_0|``, for reference only), ``median_snr``,
         ``resolution`` (median regularised resolution diagonal), ``posterior_to_prior``
         (worst coefficient), ``error_bound`` (worst channel), ``determined``, ``bounded``,
-        ``ill_conditioned`` and ``reason``.
+        ``ill_conditioned``, ``reason``, ``channels`` (per channel ``"determined"``,
+        ``"bounded"`` or ``"not"``) and, on a bounded band, ``norm_upper_bound_rel``
+        (:data:`ZERO_BAND_LIMIT`: the norm is below that share of the quantity's scale).
     """
     # the verdicts are a few numbers per band: computed on the CPU whatever the fit's device
     x = sol.coefficients.detach().cpu()
@@ -198,6 +200,9 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
             "determined": det, "bounded": bnd,
             "ill_conditioned": not (det or bnd),
             "reason": reason,
+            # a bounded band's norm is below this share of the quantity's scale (the report's
+            # "no power above X%"), as the Bayesian rows say it
+            **({"norm_upper_bound_rel": ZERO_BAND_LIMIT} if bnd else {}),
             # per channel: "determined", "bounded" or "not" (problem 3 flags per coefficient)
             "channels": ["determined" if bool(d) else "bounded" if bool(o) else "not"
                          for d, o in zip(det_c, ok_c)],

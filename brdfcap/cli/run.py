@@ -186,10 +186,10 @@ class LmaxType(click.ParamType):
               help="Highest band of SH-domain BRDF filters (problems brdf/both).")
 @click.option("--design", type=click.Choice(["exact", "rh"]), default="exact",
               show_default=True,
-              help="Problem lighting's forward model of a glossy BRDF: exact (quadrature of "
-                   "the BRDF, slower) or rh (Ramamoorthi & Hanrahan 2001's reflection-space "
-                   "filter, fast but approximate: biased for rough or grazing lobes; "
-                   "docs/fitting.md).")
+              help="Forward model of a glossy BRDF in problems lighting and decomposition: "
+                   "exact (quadrature of the BRDF, slower) or rh (Ramamoorthi & Hanrahan "
+                   "2001's reflection-space filter and small-angle source lobes, fast but "
+                   "approximate: biased for rough or grazing lobes; docs/fitting.md).")
 @click.option("--jobs", "-j", type=click.IntRange(0, 4096), default=1, show_default=True,
               help="Dask workers for a batch: local worker processes (0: one per CPU core), "
                    "or job-queue workers with --cluster (docs/batch.md).")

@@ -38,10 +38,12 @@ class FitOptions:
 
     ``lmax``: highest band of recovered lighting; ``brdf``: BRDF model overriding
     ``[material].model``; ``rule``: Tikhonov weight rule (:mod:`brdfcap.fit.solve`);
-    ``brdf_lmax``: highest band of SH-domain BRDF filters; ``design``: problem 1's forward
-    model of a glossy BRDF — ``"exact"`` (quadrature of the model's point evaluation,
-    :mod:`brdfcap.fit.exact_design`) or ``"rh"`` (R&H 2001's reflection-space form, faster,
-    approximate; ``docs/fitting.md``).
+    ``brdf_lmax``: highest band of SH-domain BRDF filters; ``design``: the forward model of a
+    glossy BRDF in problems lighting and decomposition — ``"exact"`` (quadrature of the
+    model's point evaluation, :mod:`brdfcap.fit.exact_design`; the decomposition's sources
+    through the point evaluation itself) or ``"rh"`` (R&H 2001's reflection-space form and,
+    for the decomposition, the small-angle lobes of seed eqs. 6-8: faster, approximate;
+    ``docs/fitting.md``).
     """
 
     lmax: int | str = 2  # or "auto" (problems lighting and auto: the band the data determine)

@@ -244,7 +244,7 @@ def test_problem_decomposition_round_trip():
     def run(sigma):
         known = Known(source="capture.toml", sources=dirs,
                       material={"model": "microfacet", "albedo": kd.tolist(),
-                                "f0": f0.tolist(), "sigma": sigma})
+                                "f0": f0.tolist(), "sigma": sigma, "fresnel": "none"})
         return solve_problem("decomposition", samples, known, FitOptions(lmax=2, rule="none"))
 
     out = run(0.1)
