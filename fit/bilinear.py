@@ -47,8 +47,7 @@ from .conditioning import (
     band_determined,
     band_statistics,
     data_resolved,
-    filter_band_status,
-    filter_reason,
+    filter_band_rows,
     noise_level,
     residual_adequacy,
 )
@@ -554,25 +553,12 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         rule=sol_b.rule, noise_source=src, n_samples=sol_b.n_samples,
         band=torch.arange(lb + 1),
         band_singular=[torch.ones(1, 1, dtype=f64)] + sol_b.band_singular[1:lb + 1])
-    f_rows, _ = band_statistics(fsol, reference=torch.ones(1, dtype=f64))
     # what the data resolve of the filter: problem 2's rule (conditioning.FILTER_DEFINITION)
     # on the joint errors — a band within 10% of its own value at 99%, or bounded below 1% of
     # f_0 = 1; not "error below f_0", which called bands of SNR 1 determined (issue 12)
-    precise, bounded, bound = filter_band_status(f[:, None], f_se[:, None])
-    f_det = fsol.determined[:, 0] & torch.isfinite(f_se) & (precise | bounded)[:, 0]
-    f_ill = None
-    for l, row in enumerate(f_rows):
-        row["error_bound"] = float(bound[l, 0]) if bool(torch.isfinite(f_se[l])) else math.inf
-        row["bounded"] = bool(bounded[l, 0] and f_det[l])
-        row["ill_conditioned"] = not bool(f_det[l])
-        row["determined"] = bool(f_det[l]) and not row["bounded"]
-        row["reason"] = filter_reason(bool(fsol.determined[l, 0] and torch.isfinite(f_se[l])),
-                                      bool(precise[l, 0]), row["bounded"], row["error_bound"])
-        # the filter's rule has no prior-ratio test and one verdict for all channels
-        row.pop("posterior_to_prior", None)
-        row.pop("channels", None)
-        if row["ill_conditioned"] and f_ill is None:
-            f_ill = l
+    reached = fsol.determined & torch.isfinite(f_se)[:, None]
+    f_rows, f_ill, f_det = filter_band_rows(fsol, f[:, None], f_se[:, None], reached)
+    f_det = f_det[:, 0]
     fk = S @ f
     pred = _predict(yn, yr, fk, L, kd)
     spec_part = torch.stack([(yr * fk) @ L[:, c] - float(L[0, c] * fk[0]) * yr[:, 0]

@@ -47,6 +47,7 @@ from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "BAYES_DEFINITION", "FILTER_DEFINITION", "filter_band_status", "filter_reason",
+           "filter_band_rows",
            "band_determined", "data_resolved", "apply_band_verdict", "PRECISION_LIMIT",
            "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
            "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
@@ -183,17 +184,8 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         if bool(ex.any()) and bool(has.any()):
             reason += " (judged on the coefficients no listed ambiguity touches)"
         fin_b = bound[judged & torch.isfinite(bound)]
-        rel = seu_all[sel] / dc
-        sv = sol.band_singular[l] if l < len(sol.band_singular) else torch.zeros(1)
-        smax, smin = float(sv.max()), float(sv.min())
         rows.append({
-            "l": l, "n_coefficients": int(sel.sum()),
-            "singular_max": smax, "singular_min": smin,
-            "condition": smax / smin if smin > 0 else math.inf,
-            "determined_fraction": float(spanned.double().mean()),
-            "median_rel_stderr": float(rel.median()) if bool(spanned.all()) else math.inf,
-            "median_snr": float(snr_all[sel].median()),
-            "resolution": float(res_all[sel].median()),
+            **_design_row(sol, l, sel, spanned, dc, seu_all, snr_all, res_all),
             "posterior_to_prior": float(ratio.max()),
             "error_bound": float(fin_b.max()) if bool(resolved[judged].all()) and fin_b.numel()
             else math.inf,
@@ -210,6 +202,82 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         if not (det or bnd) and first is None:
             first = l
     return rows, first
+
+
+def _design_row(sol: LinearSolution, l: int, sel: torch.Tensor, spanned: torch.Tensor,
+                dc: torch.Tensor, seu: torch.Tensor, snr: torch.Tensor, res: torch.Tensor
+                ) -> dict:
+    """Return the design statistics of band ``l`` (``sel`` its coefficients), for every rule.
+
+    ``l``, ``n_coefficients``, ``singular_max``/``singular_min``/``condition`` (the band's
+    block of the weighted design, over channels), ``determined_fraction`` (share of
+    ``spanned``), ``median_rel_stderr`` (median unregularised error over ``|x_0|``, ``dc``; for
+    reference only), ``median_snr``, ``resolution`` (median regularised resolution diagonal);
+    ``seu``, ``snr``, ``res`` are the solution's ``(K, C)`` CPU tensors.
+    """
+    rel = seu[sel] / dc
+    sv = sol.band_singular[l] if l < len(sol.band_singular) else torch.zeros(1)
+    smax, smin = float(sv.max()), float(sv.min())
+    return {"l": l, "n_coefficients": int(sel.sum()),
+            "singular_max": smax, "singular_min": smin,
+            "condition": smax / smin if smin > 0 else math.inf,
+            "determined_fraction": float(spanned.double().mean()),
+            "median_rel_stderr": float(rel.median()) if bool(spanned.all()) else math.inf,
+            "median_snr": float(snr[sel].median()),
+            "resolution": float(res[sel].median())}
+
+
+def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Tensor,
+                     reached: torch.Tensor, aliased: frozenset | set = frozenset()
+                     ) -> tuple[list[dict], int | None, torch.Tensor]:
+    """Band rows of a radial BRDF filter under :data:`FILTER_DEFINITION` (problems 2 and 3).
+
+    Parameters
+    ----------
+    sol : LinearSolution
+        The filter's solution, one coefficient per band (its design statistics go in the rows).
+    value, stderr : torch.Tensor
+        ``(lmax+1, C)`` the filter and its (joint, bias-aware) errors (``inf``: not reached).
+    reached : torch.Tensor
+        ``(lmax+1, C)`` bool: the samples span the band (and no listed ambiguity takes it).
+    aliased : set
+        Bands flagged as one of an aliased odd/even pair (reason says so).
+
+    Returns
+    -------
+    tuple
+        ``(rows, first_ill_band, determined)``: per band the design statistics of
+        :func:`band_statistics` and ``error_bound`` (worst channel), ``determined``,
+        ``bounded``, ``ill_conditioned``, ``reason``, ``aliased`` where flagged and, on a bounded
+        band, ``norm_upper_bound_rel`` (:data:`ZERO_BAND_LIMIT` of the DC); ``determined``
+        ``(lmax+1, C)`` bool per channel (determined or bounded).
+    """
+    precise, bounded, bound = filter_band_status(value, stderr)
+    determined = reached & (precise | bounded)
+    dc = sol.coefficients_unregularised[0].detach().cpu().abs().clamp_min(1e-300)
+    det_all, res_all = sol.determined.cpu(), sol.resolution.detach().cpu()
+    seu_all, snr_all = sol.stderr_unregularised.detach().cpu(), sol.snr.detach().cpu()
+    band_all = sol.band.cpu()
+    rows, first = [], None
+    for l in range(value.shape[0]):
+        sel = band_all == l
+        row = _design_row(sol, l, sel, det_all[sel], dc, seu_all, snr_all, res_all)
+        ok = bool(reached[l].all())
+        bnd = ok and bool(bounded[l].any()) and bool(determined[l].all())
+        row["error_bound"] = float(bound[l].max()) if ok else math.inf
+        row["determined"] = bool(determined[l].all()) and not bnd
+        row["bounded"] = bnd
+        row["ill_conditioned"] = not bool(determined[l].all())
+        row["reason"] = filter_reason(ok, bool(precise[l].all()), bnd, row["error_bound"],
+                                      l in aliased)
+        if bnd:
+            row["norm_upper_bound_rel"] = ZERO_BAND_LIMIT
+        if l in aliased:
+            row["aliased"] = True
+        if row["ill_conditioned"] and first is None:
+            first = l
+        rows.append(row)
+    return rows, first, determined
 
 
 def apply_band_verdict(sol: LinearSolution, rows: list[dict]) -> None:

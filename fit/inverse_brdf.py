@@ -32,8 +32,7 @@ from .conditioning import (
     FILTER_DEFINITION,
     apply_band_verdict,
     band_statistics,
-    filter_band_status,
-    filter_reason,
+    filter_band_rows,
     noise_level,
 )
 from .memory import check_dense_memory
@@ -180,7 +179,6 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         lam=sol.lam, lam_rel=sol.lam_rel, chi2_reduced=sol.chi2_reduced, dof=sol.dof,
         rule=sol.rule, noise_source=sol.noise_source, n_samples=sol.n_samples,
         band=bands[: lmax + 1], band_singular=sol.band_singular)
-    rows, _ = band_statistics(sol_f)
     eps = noise_level(sol_f)
     # ρ̂_l is seen through all 2l+1 coefficients of band l: its information is the band norm
     # ||L_l||² = Σ_m L_lm² (not the mean over m, which is √(2l+1) too small; issue 12)
@@ -204,23 +202,7 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     # what the data resolve (conditioning.FILTER_DEFINITION): each band against its own value
     # (or bounded to nothing), on the bias-aware error; not against the DC term's error, which
     # called a band of SNR 1 "determined" (issue 12)
-    precise, bounded, bound = filter_band_status(filt, filt_se)
-    determined = reached & (precise | bounded)
-    ill = None
-    for l, row in enumerate(rows):
-        row["error_bound"] = float(bound[l].max()) if bool(reached[l].all()) else math.inf
-        row["bounded"] = bool(reached[l].all() and bounded[l].any() and determined[l].all())
-        row["ill_conditioned"] = not bool(determined[l].all())
-        row["determined"] = bool(determined[l].all()) and not row["bounded"]
-        row["reason"] = filter_reason(bool(sol.determined[l].all()), bool(precise[l].all()),
-                                      row["bounded"], row["error_bound"], l in aliased)
-        # the filter's rule has no prior-ratio test and one verdict for all channels
-        row.pop("posterior_to_prior", None)
-        row.pop("channels", None)
-        if l in aliased:
-            row["aliased"] = True
-        if row["ill_conditioned"] and ill is None:
-            ill = l
+    rows, ill, determined = filter_band_rows(sol_f, filt, filt_se, reached, aliased)
     ambiguities = []
     if pairs:
         ambiguities.append({
