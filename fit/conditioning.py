@@ -65,6 +65,9 @@ REL_STDERR_LIMIT = 1.0
 #: Highest band searched by the Lambertian even-band prediction.
 LSTAR_SEARCH_LMAX = 64
 
+#: Two disjoint halves of the samples disagree "beyond their stated errors" on a band when the
+#: χ² of their difference exceeds this quantile of χ²(2l+1).
+REPRODUCIBILITY_LEVEL = 0.999
 ILL_CONDITIONING_DEFINITION = (
     f"Band l is determined when (1) every coefficient is spanned by the samples (diagonal of "
     f"the unregularised model-resolution matrix >= {RESOLUTION_LIMIT}: not where the BRDF "
@@ -73,6 +76,11 @@ ILL_CONDITIONING_DEFINITION = (
     f"prior, posterior variance <= {RATIO_LIMIT:g} x prior variance), and (3) the band's norm "
     f"error is below 10% of its own norm with probability 0.99 (bias-aware variances) - or the "
     f"band is bounded: its norm below 1% of the quantity's scale with that probability. "
+    f"Where the fit has two disjoint halves of the samples (alternate views, or alternate "
+    f"blocks of one view), each is also fitted at the same penalty and, where they disagree "
+    f"beyond their stated errors (chi2 of the difference above its "
+    f"{100 * REPRODUCIBILITY_LEVEL:g}% quantile), the band's errors are widened by the "
+    f"disagreement (Birge ratio) before (3) is checked. "
     f"ill_conditioned_from_l is the first band neither determined nor bounded. The band is "
     f"compared with its own value, never with the DC term; Ramamoorthi & Hanrahan's (2001, "
     f"section 3-4) Lambda_l rho_l < eps with eps = stderr(x_0)/|x_0| is the prediction shown "
@@ -144,6 +152,11 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         xs = torch.where(use, x[sel], zero)
         se = torch.where(use, se_all[sel], zero)
         norm = xs.norm(dim=0)
+        # the model-free check (solve_wls(split=...)): halves that disagree beyond their
+        # stated errors widen the band's errors by the Birge ratio before (3)
+        repro = _band_reproducibility(sol, sel, use, resolved)
+        infl = repro["inflation"]
+        se = se * infl.sqrt()[None, :]
         bound = torch.where(resolved, band_error_bound(se ** 2, norm),
                             torch.full((nch,), math.inf, dtype=torch.float64))
         precise = bound <= ERROR_BOUND_LIMIT
@@ -183,6 +196,9 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
                       f"probability {ERROR_BOUND_LEVEL:g} (> {100 * ERROR_BOUND_LIMIT:g}%)")
         if bool(ex.any()) and bool(has.any()):
             reason += " (judged on the coefficients no listed ambiguity touches)"
+        if repro["checked"] and not repro["reproducible"]:
+            reason += (f"; halves differ by chi2 {repro['chi2']:.3g} > {repro['limit']:.3g} "
+                       f"({repro['dof']} dof): errors widened {repro['widened_by']:.3g}x")
         fin_b = bound[judged & torch.isfinite(bound)]
         rows.append({
             **_design_row(sol, l, sel, spanned, dc, seu_all, snr_all, res_all),
@@ -195,6 +211,13 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
             # a bounded band's norm is below this share of the quantity's scale (the report's
             # "no power above X%"), as the Bayesian rows say it
             **({"norm_upper_bound_rel": ZERO_BAND_LIMIT} if bnd else {}),
+            # the split-half check, as the Bayesian rows carry it (None: no split, or a half
+            # that does not span the band)
+            "reproducibility_chi2": repro["chi2"] if repro["checked"] else None,
+            "reproducibility_limit": repro["limit"] if repro["checked"] else None,
+            "reproducible": repro["reproducible"] if repro["checked"] else None,
+            "widened_by": repro["widened_by"],
+            "widened_by_channel": infl.sqrt().tolist(),
             # per channel: "determined", "bounded" or "not" (problem 3 flags per coefficient)
             "channels": ["determined" if bool(d) else "bounded" if bool(o) else "not"
                          for d, o in zip(det_c, ok_c)],
@@ -202,6 +225,53 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         if not (det or bnd) and first is None:
             first = l
     return rows, first
+
+
+def _band_reproducibility(sol: LinearSolution, sel: torch.Tensor, use: torch.Tensor,
+                          resolved: torch.Tensor) -> dict:
+    """Judge the split halves' agreement on one band, as :func:`band_statistics_bayes` does.
+
+    ``sel``: the band's coefficients; ``use`` ``(n_l, C)``: those judged; ``resolved``
+    ``(C,)``. Per channel whose band is resolved and spanned by both halves' samples:
+    ``χ² = dᵀ (C_A + C_B)⁻¹ d`` of the halves' difference over the judged coefficients, against the
+    :data:`REPRODUCIBILITY_LEVEL` quantile of ``χ²(n)``; above it the band's variances are
+    multiplied by the Birge ratio ``χ²/n`` (Birge 1932, Phys. Rev. 40, 207). Returns
+    ``checked``, ``chi2`` and ``limit`` (worst channel), ``dof``, ``reproducible``,
+    ``inflation`` ``(C,)`` and ``widened_by`` (its largest square root).
+    """
+    nch = use.shape[1]
+    infl = torch.ones(nch, dtype=torch.float64)
+    out = {"checked": False, "chi2": None, "limit": None, "dof": None, "reproducible": True,
+           "inflation": infl, "widened_by": 1.0}
+    if sol.split_coefficients is None or sol.split_covariance is None:
+        return out
+    sx, scov = sol.split_coefficients.detach().cpu(), sol.split_covariance.detach().cpu()
+    sdet = None if sol.split_determined is None else sol.split_determined.cpu()
+    idx = torch.nonzero(sel.cpu()).flatten()
+    worst, lim_w, dof_w = -1.0, None, None
+    for c in range(nch):
+        keep = idx[use[:, c]]
+        if keep.numel() == 0 or not bool(resolved[c]):
+            continue
+        if sdet is not None and not bool(sdet[:, keep, c].all()):
+            continue  # a half does not span the band: nothing to compare
+        d = sx[0, keep, c] - sx[1, keep, c]
+        ix = (keep[:, None], keep[None, :])
+        cv = scov[0, c][ix] + scov[1, c][ix]
+        cv = 0.5 * (cv + cv.T)
+        z2 = float(d @ torch.linalg.lstsq(cv, d[:, None]).solution[:, 0])
+        nl = int(keep.numel())
+        lim = _chi2_quantile(REPRODUCIBILITY_LEVEL, nl)
+        if z2 > lim:
+            infl[c] = max(z2 / nl, 1.0)
+        if z2 / lim > worst:
+            worst, out["chi2"], lim_w, dof_w = z2 / lim, z2, lim, nl
+        out["checked"] = True
+    if out["checked"]:
+        out["limit"], out["dof"] = lim_w, dof_w
+        out["reproducible"] = bool((infl == 1.0).all())
+        out["widened_by"] = math.sqrt(float(infl.max()))
+    return out
 
 
 def _design_row(sol: LinearSolution, l: int, sel: torch.Tensor, spanned: torch.Tensor,
@@ -283,11 +353,19 @@ def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Ten
 def apply_band_verdict(sol: LinearSolution, rows: list[dict]) -> None:
     """Flag the coefficients of bands :func:`band_statistics` does not call determined.
 
-    In place: ``determined`` is and-ed with the band verdict and ``stderr`` becomes ``inf``
-    where a coefficient is not determined (the product's convention: a finite error only
-    where the data determine the value).
+    In place: ``determined`` is and-ed with the band verdict, ``stderr`` is widened where the
+    split halves disagreed (the row's ``widened_by_channel``) and becomes ``inf`` where a
+    coefficient is not determined (the product's convention: a finite error only where the
+    data determine the value).
     """
     sol.determined = sol.determined & band_determined(rows, sol.band, sol.determined.shape[1])
+    # a band whose split halves disagreed keeps the widened errors its verdict was judged on
+    for r in rows:
+        wc = r.get("widened_by_channel")
+        if wc and max(wc) > 1.0:
+            sel = (sol.band == r["l"]).to(sol.stderr.device)
+            fac = torch.as_tensor(wc, dtype=sol.stderr.dtype, device=sol.stderr.device)
+            sol.stderr = torch.where(sel[:, None], sol.stderr * fac[None, :], sol.stderr)
     sol.stderr = torch.where(sol.determined, sol.stderr, torch.full_like(sol.stderr, math.inf))
 
 
@@ -412,9 +490,6 @@ ZERO_BAND_LIMIT = 0.01
 #: χ²/ν above which (and 3 s.d. above 1) the model is said not to explain the data; between,
 #: a small excess only inflates the intervals (σ² = χ²/ν).
 CHI2_INADEQUATE = 1.5
-#: Two disjoint halves of the samples disagree "beyond their stated errors" on a band when the
-#: χ² of their difference exceeds this quantile of χ²(2l+1).
-REPRODUCIBILITY_LEVEL = 0.999
 
 BAYES_DEFINITION = (
     f"Band l of a quantity is determined when (1) the BRDF filter does not vanish there "

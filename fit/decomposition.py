@@ -45,7 +45,7 @@ from .brdf_models import BRDFSpec, diffuse_filter, microfacet_sh_filter
 from .conditioning import apply_band_verdict, band_statistics, residual_adequacy
 from .inverse_lighting import lighting_design
 from .sh import band_of_index, real_sh
-from .solve import LinearSolution, noise_weights, solve_wls
+from .solve import LinearSolution, noise_weights, solve_wls, split_halves
 
 __all__ = ["DESIGNS", "DESIGN_TEXT", "Decomposition", "DecomposedLighting",
            "microfacet_decomposition", "exact_decomposition", "fit_decomposed_lighting",
@@ -267,7 +267,8 @@ def fit_decomposed_lighting(normal: torch.Tensor, reflected: torch.Tensor,
     design : str
         ``"exact"`` or ``"rh"`` (module doc).
     view : torch.Tensor, optional
-        ``(N,)`` view index of each sample (per-view residuals in the adequacy verdict).
+        ``(N,)`` view index of each sample: per-view residuals in the adequacy verdict, and the
+        split halves of the reproducibility check alternate views (else blocks of samples).
     """
     if design not in DESIGNS:
         raise ValueError(f"unknown decomposition design {design!r}; valid: {', '.join(DESIGNS)}")
@@ -293,7 +294,8 @@ def fit_decomposed_lighting(normal: torch.Tensor, reflected: torch.Tensor,
                                                                          dtype=f64) + 0.01,
                      torch.full((1,), 0.01, dtype=f64)])
     sol = solve_wls(rows_of, b, w, band, rule=rule, noise_known=var is not None,
-                    band_penalty=pen, noise_source=src)
+                    band_penalty=pen, noise_source=src,
+                    split=split_halves(n.shape[0], view))  # the model-free check
     x = sol.coefficients
     pred = torch.cat([torch.einsum("nck,kc->nc", rows_of(s, min(s + PREDICT_CHUNK, n.shape[0])),
                                    x) for s in range(0, n.shape[0], PREDICT_CHUNK)])

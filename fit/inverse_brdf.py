@@ -38,7 +38,13 @@ from .conditioning import (
 from .memory import check_dense_memory
 from .parametric import ParametricFit, fit_brdf_parametric
 from .sh import band_of_index, real_sh
-from .solve import LinearSolution, drop_nonfinite_directions, noise_weights, solve_wls
+from .solve import (
+    LinearSolution,
+    drop_nonfinite_directions,
+    noise_weights,
+    solve_wls,
+    split_halves,
+)
 
 __all__ = ["BRDFSHFit", "fit_brdf_sh", "horizon_keep", "horizon_lines", "LOBE_RADIUS_FACTOR",
            "HORIZON_TAIL", "HORIZON_TAIL_MAX", "lobe_radius_factor",
@@ -432,8 +438,13 @@ def isotropic_design(normal: torch.Tensor, wo: torch.Tensor, light_sh: torch.Ten
 
 def fit_brdf_isotropic(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.Tensor,
                        light_sh: torch.Tensor, lmax: int, pmax: int | None = None,
-                       variance: torch.Tensor | None = None, rule: str = "gcv") -> dict:
+                       variance: torch.Tensor | None = None, rule: str = "gcv",
+                       view: torch.Tensor | None = None) -> dict:
     """Recover isotropic ``ρ̂_lpk`` (R&H 2001 eq. 16 convention) under known SH lighting.
+
+    ``view``: ``(N,)`` view index per sample; the split halves of the model-free
+    reproducibility check (:func:`~.conditioning.band_statistics`) alternate views (else
+    blocks of samples).
 
     Returns
     -------
@@ -450,7 +461,8 @@ def fit_brdf_isotropic(normal: torch.Tensor, wo: torch.Tensor, radiance: torch.T
     w, src = noise_weights(b, None if variance is None else variance.to(torch.float64))
     band = torch.tensor([l for l, _, _ in idx])
     sol = solve_wls(a, b, w, band, rule=rule, noise_known=variance is not None,
-                    band_penalty=torch.ones(lmax + 1, dtype=torch.float64), noise_source=src)
+                    band_penalty=torch.ones(lmax + 1, dtype=torch.float64), noise_source=src,
+                    split=split_halves(b.shape[0], view))
     rows, ill = band_statistics(sol)
     apply_band_verdict(sol, rows)
     nch = b.shape[1]

@@ -58,6 +58,7 @@ from .solve import (
     restrict,
     solve_bayes,
     solve_wls,
+    split_halves,
 )
 from .structured_truncation import (
     OMITTED_LMAX_CAP,
@@ -87,8 +88,6 @@ INTERNAL_LMAX_CAP = 24
 #: (:func:`truncation_lmax`): at 0.1 the noise s.d. grows by at most 5%, and the residual's
 #: lag-1 autocorrelation stays below ~0.1, under the adequacy check's 0.2.
 TRUNCATION_NOISE_FRACTION = 0.1
-#: Scan-order blocks alternated between the two halves when there is only one view.
-SPLIT_BLOCKS = 16
 #: Truncation-noise term (exact specular design): at most this many re-solves with τ²
 #: re-estimated from the new residual (``docs/fitting.md``, "Truncation noise").
 TRUNCATION_ITERATIONS = 2
@@ -514,16 +513,6 @@ def _pilot_bandwidths(spec: BRDFSpec, scan0: tuple, view: torch.Tensor | None, l
     return _more_bandwidths(spec, pilot, l0, cap, True, design)
 
 
-def _split_halves(n: int, view: torch.Tensor | None, good: torch.Tensor) -> torch.Tensor:
-    """0/1 halves for the reproducibility check: alternate views, else alternate scan blocks."""
-    if view is not None:
-        vs = torch.unique(view[good])
-        if vs.numel() >= 2:
-            rank = torch.searchsorted(vs, view.clamp(min=int(vs.min()), max=int(vs.max())))
-            return rank % 2
-    return (torch.arange(n) * SPLIT_BLOCKS // max(n, 1)) % 2
-
-
 def _symmetric_tail(spec: BRDFSpec, design: str, top: int = 400) -> torch.Tensor:
     r"""``T(L) = Σ_{l>L} (2l+1)/(4π) f_l²`` of the normal-exitance filter, ``(top+1,)``.
 
@@ -877,9 +866,10 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
         raise ValueError("lmax='auto' needs method='bayes'")
     band = band_of_index(lmax).to(n.device)
     design_f, cscale = lighting_design(spec, n, r, lmax, design=design)
+    split = split_halves(n.shape[0], view, good).to(n.device)  # the model-free check
     sol = solve_wls(design_f, b, w, band, rule=rule, noise_known=var is not None,
                     band_penalty=band_penalty, noise_source=src, chunk=chunk,
-                    channel_scale=cscale)
+                    channel_scale=cscale, split=split)
     if noise_model is not None and getattr(noise_model, "is_known", False):
         pred = torch.cat([apply_design(design_f(s, min(s + chunk, len(n))), cscale,
                                        sol.coefficients) for s in range(0, len(n), chunk)])
@@ -888,7 +878,7 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
         w, src = noise_weights(b, var2)
         sol = solve_wls(design_f, b, w, band, rule=rule, noise_known=True,
                         band_penalty=band_penalty, noise_source=src + " (IRLS at the fit)",
-                        chunk=chunk, channel_scale=cscale)
+                        chunk=chunk, channel_scale=cscale, split=split)
     rows, ill = band_statistics(sol)
     apply_band_verdict(sol, rows)
     eps = noise_level(sol)
@@ -1062,7 +1052,7 @@ def _fit_lighting_bayes(n, r, b, w, noise_known, src, lmax, spec, noise_model, s
     check_memory(8 * (min(n.shape[0], chunk) * k_req + 4 * b.shape[-1] * k_req ** 2),
                  f"the Bayesian lighting fit at lmax = {lrep} ({k_req} coefficients per channel)",
                  n.device)
-    split = _split_halves(n.shape[0], view, good)
+    split = split_halves(n.shape[0], view, good)
     scan0 = (n, b, w, split)  # scan order, for a pilot solve (PILOT_MIN_SAMPLES)
     # the solves see the samples grouped by half (each half's rows contiguous: its Gram is
     # taken from slices, not copies); residuals go back to scan order for the adequacy checks

@@ -63,7 +63,7 @@ __all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restric
            "NO_NOISE_MODEL", "drop_nonfinite_directions",
            "default_band_penalty",
            "REGULARIZATION_RULES", "EIG_RTOL",
-           "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID"]
+           "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID", "split_halves", "SPLIT_BLOCKS"]
 
 #: Eigenvalues of the scaled normal matrix below ``EIG_RTOL × max`` are treated as exactly zero
 #: (singular values below 1e-6 of the largest: float64 normal equations keep no digit of them).
@@ -107,6 +107,11 @@ class LinearSolution:
     covariance: torch.Tensor | None = None  # (C, K, K) of the regularised estimate
     bayes: object = None  # BayesExtras from solve_bayes (None for solve_wls)
     internal_lmax: int | None = None  # bandwidth solved for when restricted (solve_bayes)
+    # solve_wls(split=...): each half's estimate (2, K, C) and covariance (2, C, K, K) at the
+    # full fit's λ and σ² — the model-free reproducibility check of band_statistics
+    split_coefficients: torch.Tensor | None = None
+    split_covariance: torch.Tensor | None = None
+    split_determined: torch.Tensor | None = None  # (2, K, C): spanned by each half's samples
 
     @property
     def snr(self) -> torch.Tensor:
@@ -245,7 +250,8 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
               noise_known: bool = True, band_penalty: torch.Tensor | None = None,
               noise_source: str = "", chunk: int = 65536,
               keep_covariance: bool = False,
-              channel_scale: torch.Tensor | None = None) -> LinearSolution:
+              channel_scale: torch.Tensor | None = None,
+              split: torch.Tensor | None = None) -> LinearSolution:
     """Per-channel weighted least squares with per-band Tikhonov (rule-chosen λ).
 
     Parameters
@@ -270,6 +276,11 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         The design must be finite (the caller sanitises its inputs).
     keep_covariance : bool
         Also return the full ``(C, K, K)`` covariance of the regularised estimate.
+    split : torch.Tensor, optional
+        ``(N,)`` 0/1: two disjoint halves of the samples (:func:`split_halves`). Each half is
+        also solved at the full fit's λ and σ² (``split_coefficients``, ``split_covariance``):
+        the model-free reproducibility check of :func:`~.conditioning.band_statistics`. The
+        Grams are accumulated per half (one product per row, as without a split).
 
     Returns
     -------
@@ -293,31 +304,43 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
     else:
         rule_used = rule
 
-    gram = torch.zeros(nch, k, k, dtype=torch.float64, device=dev)
-    rhs = torch.zeros(nch, k, dtype=torch.float64, device=dev)
+    halves = 1 if split is None else 2
+    sp = None if split is None else split.to(dev).long()
+    if sp is not None and sp.shape[0] != n:
+        raise ValueError(f"split has {sp.shape[0]} entries for {n} samples")
+    gram_h = torch.zeros(halves, nch, k, k, dtype=torch.float64, device=dev)
+    rhs_h = torch.zeros(halves, nch, k, dtype=torch.float64, device=dev)
     shared_w = all(torch.equal(w[:, 0], w[:, c]) for c in range(1, nch))
     cs = None if channel_scale is None else channel_scale.to(torch.float64).to(dev)
     if callable(design) and n * k <= MATERIALIZE_LIMIT:
         design = design(0, n)  # small enough: evaluate once, reuse for the residual pass
     for s, e, a in _design_chunks(design, n, chunk):
         a = a.to(torch.float64)
-        ws = w[s:e]
-        if a.ndim == 2 and shared_w:  # one Gram for all channels, scaled
-            aw = a * ws[:, :1]
-            g1 = aw.T @ a
-            r1 = aw.T @ b[s:e]  # (K, C)
+        for h in range(halves):
+            ws = w[s:e] if sp is None else w[s:e] * (sp[s:e] == h)[:, None]
+            gram, rhs = gram_h[h], rhs_h[h]
+            if a.ndim == 2 and shared_w:  # one Gram for all channels, scaled
+                aw = a * ws[:, :1]
+                g1 = aw.T @ a
+                r1 = aw.T @ b[s:e]  # (K, C)
+                for c in range(nch):
+                    sc = 1.0 if cs is None else cs[c]
+                    gram[c] += g1 * sc * sc
+                    rhs[c] += r1[:, c] * sc
+                continue
             for c in range(nch):
-                sc = 1.0 if cs is None else cs[c]
-                gram[c] += g1 * sc * sc
-                rhs[c] += r1[:, c] * sc
-            continue
-        for c in range(nch):
-            ac = a if a.ndim == 2 else a[:, c, :]
-            if cs is not None:
-                ac = ac * cs[c]
-            awc = ac * ws[:, c:c + 1]
-            gram[c] += awc.T @ ac
-            rhs[c] += awc.T @ b[s:e, c]
+                ac = a if a.ndim == 2 else a[:, c, :]
+                if cs is not None:
+                    ac = ac * cs[c]
+                awc = ac * ws[:, c:c + 1]
+                gram[c] += awc.T @ ac
+                rhs[c] += awc.T @ b[s:e, c]
+    gram, rhs = gram_h.sum(0), rhs_h.sum(0)
+    split_ok = sp is not None and all(bool((w[sp == h] > 0).any()) for h in (0, 1))
+    split_x = torch.zeros(2, k, nch, dtype=torch.float64, device=dev) if split_ok else None
+    split_cov = torch.zeros(2, nch, k, k, dtype=torch.float64, device=dev) if split_ok \
+        else None
+    split_det = torch.zeros(2, k, nch, dtype=torch.bool, device=dev) if split_ok else None
     if band_penalty is None:
         pen = default_band_penalty(int(band.max())).to(dev)[band]
     else:
@@ -394,12 +417,48 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
         lam_abs[c], lam_rel[c], chi2[c], dofs[c] = lam, lam / scale, chi, dof
         if covs is not None:
             covs[c] = (ps[:, None] * (uk / (g + lam)) @ uk.T * ps[None, :]) * sig2
+        if split_ok:
+            # each half at the full fit's λ and σ² (whitened; the pseudo-inverse keeps a half
+            # whose samples leave directions unspanned finite there: λ sets them, as above)
+            for h in range(2):
+                gh = gram_h[h, c] * ps[:, None] * ps[None, :]
+                ev0, uh = torch.linalg.eigh(0.5 * (gh + gh.T))
+                ev0 = ev0.clamp_min(0.0)
+                span = ev0 > EIG_RTOL * ev0.max().clamp_min(1e-300)
+                split_det[h, :, c] = (uh[:, span] ** 2).sum(-1) > RESOLUTION_LIMIT
+                evh = ev0 + lam
+                okh = evh > EIG_RTOL * evh.max().clamp_min(1e-300)
+                uh, evh = uh[:, okh], evh[okh]
+                split_x[h, :, c] = ps * (uh @ ((uh.T @ (ps * rhs_h[h, c])) / evh))
+                split_cov[h, c] = (ps[:, None] * (uh / evh) @ uh.T * ps[None, :]) * sig2
     return LinearSolution(
         coefficients=coef, coefficients_unregularised=x0, stderr=se_reg,
         stderr_unregularised=se_unreg, determined=determined,
         resolution=resol, lam=lam_abs, lam_rel=lam_rel, chi2_reduced=chi2, dof=dofs,
         rule=rule_used, noise_source=noise_source, n_samples=int(nuse.max()), band=band,
-        band_singular=_band_singular_values(gram, band), covariance=covs)
+        band_singular=_band_singular_values(gram, band), covariance=covs,
+        split_coefficients=split_x, split_covariance=split_cov, split_determined=split_det)
+
+
+#: Scan-order blocks alternated between the two halves of :func:`split_halves` (one view).
+SPLIT_BLOCKS = 16
+
+
+def split_halves(n: int, view: torch.Tensor | None = None,
+                 good: torch.Tensor | None = None) -> torch.Tensor:
+    """``(N,)`` 0/1 halves for the reproducibility check: alternate views, else scan blocks.
+
+    With two or more views (among the ``good`` samples, default all) the views alternate
+    between the halves (each view's systematic errors stay in one half); otherwise the scan
+    order is cut into :data:`SPLIT_BLOCKS` blocks, alternated.
+    """
+    if view is not None:
+        v = view.reshape(-1)
+        vs = torch.unique(v if good is None else v[good.to(v.device)])
+        if vs.numel() >= 2:
+            rank = torch.searchsorted(vs, v.clamp(min=int(vs.min()), max=int(vs.max())))
+            return rank % 2
+    return (torch.arange(n) * SPLIT_BLOCKS // max(n, 1)) % 2
 
 
 # ---------------------------------------------------------------------------------------------

@@ -30,7 +30,8 @@ def problem_brdf_isotropic(samples, known: Known, opts: FitOptions) -> FitResult
     light = need_known_lighting(known, "brdf-isotropic")
     lmax = opts.brdf_lmax
     fit = fit_brdf_isotropic(samples.normal, samples.wo, samples.radiance, light, lmax,
-                             variance=samples.variance, rule=opts.rule)
+                             variance=samples.variance, rule=opts.rule,
+                             view=getattr(samples, "view", None))
     a, idx = isotropic_design(samples.normal, samples.wo, light, lmax, lmax)
     sol = fit["solution"]
     pred = torch.einsum("ncj,jc->nc", a, sol.coefficients)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from brdfcap.fit.conditioning import PRIOR_WEAKENING, weak_prior_variance
 from brdfcap.fit.sh import band_of_index, real_sh
-from brdfcap.fit.solve import _eigh_live, solve_bayes
+from brdfcap.fit.solve import _eigh_live, default_band_penalty, solve_bayes, solve_wls
 
 
 def _problem(n=2500, lmax=5, seed=3):
@@ -70,6 +70,35 @@ def test_split_halves_and_weak_prior_match_direct_inverses():
     torch.testing.assert_close(bx.posterior_variance[~live], bx.prior_variance[~live],
                                rtol=1e-12, atol=0.0)
     assert not sol.determined[~live].any()
+
+
+def test_tikhonov_split_halves_match_direct_inverses():
+    """``solve_wls(split=...)``: each half solved at the full fit's λ and σ², as the direct
+    inverse ``(A_hᵀ W_h A_h + λ P)⁻¹ A_hᵀ W_h b_h`` with covariance ``σ² (·)⁻¹``; the halves'
+    Grams sum to the Gram of the fit without a split (same estimate).
+    """
+    a, b, w, band, split = _problem()
+    live = (a != 0).any(0)
+    a, band = a[:, live], band[live]  # every column live: the halves' inverses exist
+    for rule in ("gcv", "none"):
+        sol = solve_wls(a, b, w, band, rule=rule, split=split)
+        plain = solve_wls(a, b, w, band, rule=rule)
+        torch.testing.assert_close(sol.coefficients, plain.coefficients, rtol=1e-10, atol=1e-13)
+        pen = default_band_penalty(int(band.max()))[band]
+        for c in range(b.shape[1]):
+            s2 = float(sol.chi2_reduced[c].clamp_min(1.0))
+            for h in (0, 1):
+                rows = split == h
+                ah, wh = a[rows], w[rows, c]
+                inv = torch.linalg.inv((ah * wh[:, None]).T @ ah + sol.lam[c] * torch.diag(pen))
+                torch.testing.assert_close(sol.split_coefficients[h, :, c],
+                                           inv @ (ah.T @ (wh * b[rows, c])), rtol=1e-7,
+                                           atol=1e-11)
+                torch.testing.assert_close(sol.split_covariance[h, c], s2 * inv, rtol=1e-7,
+                                           atol=1e-13)
+        assert bool(sol.split_determined.all())
+    # without both halves there is nothing to compare
+    assert solve_wls(a, b, w, band, split=torch.zeros_like(split)).split_coefficients is None
 
 
 def test_weak_prior_variance_without_the_basis_agrees():
