@@ -557,7 +557,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     # on the joint errors — a band within 10% of its own value at 99%, or bounded below 1% of
     # f_0 = 1; not "error below f_0", which called bands of SNR 1 determined (issue 12)
     reached = fsol.determined & torch.isfinite(f_se)[:, None]
-    f_rows, f_ill, f_det = filter_band_rows(fsol, f[:, None], f_se[:, None], reached)
+    f_rows, f_ill, f_det, _ = filter_band_rows(fsol, f[:, None], f_se[:, None], reached)
     f_det = f_det[:, 0]
     fk = S @ f
     pred = _predict(yn, yr, fk, L, kd)

@@ -47,7 +47,7 @@ from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "BAYES_DEFINITION", "FILTER_DEFINITION", "filter_band_status", "filter_reason",
-           "filter_band_rows",
+           "filter_band_rows", "reproducibility",
            "band_determined", "data_resolved", "apply_band_verdict", "PRECISION_LIMIT",
            "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
            "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
@@ -154,7 +154,7 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
         norm = xs.norm(dim=0)
         # the model-free check (solve_wls(split=...)): halves that disagree beyond their
         # stated errors widen the band's errors by the Birge ratio before (3)
-        repro = _band_reproducibility(sol, sel, use, resolved)
+        repro = reproducibility(sol, sel, use, resolved)
         infl = repro["inflation"]
         se = se * infl.sqrt()[None, :]
         bound = torch.where(resolved, band_error_bound(se ** 2, norm),
@@ -227,17 +227,18 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
     return rows, first
 
 
-def _band_reproducibility(sol: LinearSolution, sel: torch.Tensor, use: torch.Tensor,
-                          resolved: torch.Tensor) -> dict:
+def reproducibility(sol: LinearSolution, sel: torch.Tensor, use: torch.Tensor,
+                    resolved: torch.Tensor) -> dict:
     """Judge the split halves' agreement on one band, as :func:`band_statistics_bayes` does.
 
-    ``sel``: the band's coefficients; ``use`` ``(n_l, C)``: those judged; ``resolved``
-    ``(C,)``. Per channel whose band is resolved and spanned by both halves' samples:
-    ``χ² = dᵀ (C_A + C_B)⁻¹ d`` of the halves' difference over the judged coefficients, against the
-    :data:`REPRODUCIBILITY_LEVEL` quantile of ``χ²(n)``; above it the band's variances are
-    multiplied by the Birge ratio ``χ²/n`` (Birge 1932, Phys. Rev. 40, 207). Returns
-    ``checked``, ``chi2`` and ``limit`` (worst channel), ``dof``, ``reproducible``,
-    ``inflation`` ``(C,)`` and ``widened_by`` (its largest square root).
+    ``sel``: the band's coefficients (any set: problem 2 passes ``kd`` alone); ``use``
+    ``(n_l, C)``: those judged; ``resolved`` ``(C,)``. Per channel whose band is resolved and
+    spanned by both halves' samples: ``χ² = dᵀ (C_A + C_B)⁻¹ d`` of the halves' difference
+    over the judged coefficients, against the :data:`REPRODUCIBILITY_LEVEL` quantile of
+    ``χ²(n)``; above it the band's variances are multiplied by the Birge ratio ``χ²/n``
+    (Birge 1932, Phys. Rev. 40, 207). Returns ``checked``, ``chi2`` and ``limit`` (worst
+    channel), ``dof``, ``reproducible``, ``inflation`` ``(C,)`` and ``widened_by`` (its
+    largest square root).
     """
     nch = use.shape[1]
     infl = torch.ones(nch, dtype=torch.float64)
@@ -299,7 +300,7 @@ def _design_row(sol: LinearSolution, l: int, sel: torch.Tensor, spanned: torch.T
 
 def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Tensor,
                      reached: torch.Tensor, aliased: frozenset | set = frozenset()
-                     ) -> tuple[list[dict], int | None, torch.Tensor]:
+                     ) -> tuple[list[dict], int | None, torch.Tensor, torch.Tensor]:
     """Band rows of a radial BRDF filter under :data:`FILTER_DEFINITION` (problems 2 and 3).
 
     Parameters
@@ -313,24 +314,40 @@ def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Ten
     aliased : set
         Bands flagged as one of an aliased odd/even pair (reason says so).
 
+    With split halves in ``sol`` (``solve_wls(split=...)``) each band first goes through the
+    model-free check of :func:`band_statistics`: halves that disagree beyond their errors
+    widen the band's errors (Birge ratio) before rule (3).
+
     Returns
     -------
     tuple
-        ``(rows, first_ill_band, determined)``: per band the design statistics of
+        ``(rows, first_ill_band, determined, stderr)``: per band the design statistics of
         :func:`band_statistics` and ``error_bound`` (worst channel), ``determined``,
-        ``bounded``, ``ill_conditioned``, ``reason``, ``aliased`` where flagged and, on a bounded
-        band, ``norm_upper_bound_rel`` (:data:`ZERO_BAND_LIMIT` of the DC); ``determined``
-        ``(lmax+1, C)`` bool per channel (determined or bounded).
+        ``bounded``, ``ill_conditioned``, ``reason``, the split-half keys
+        (``reproducibility_chi2``, ``reproducibility_limit``, ``reproducible``, ``widened_by``),
+        ``aliased`` where flagged and, on a bounded band, ``norm_upper_bound_rel``
+        (:data:`ZERO_BAND_LIMIT` of the DC); ``determined`` ``(lmax+1, C)`` bool per channel
+        (determined or bounded); ``stderr`` the errors the verdicts were judged on (widened
+        where the halves disagreed).
     """
+    band_all = sol.band.cpu()
+    stderr = stderr.clone()
+    repros = []
+    for l in range(value.shape[0]):
+        sel = band_all == l
+        use = torch.ones(int(sel.sum()), value.shape[1], dtype=torch.bool)
+        rp = reproducibility(sol, sel, use, reached[l].cpu())
+        stderr[l] = stderr[l] * rp["inflation"].sqrt().to(stderr)
+        repros.append(rp)
     precise, bounded, bound = filter_band_status(value, stderr)
     determined = reached & (precise | bounded)
     dc = sol.coefficients_unregularised[0].detach().cpu().abs().clamp_min(1e-300)
     det_all, res_all = sol.determined.cpu(), sol.resolution.detach().cpu()
     seu_all, snr_all = sol.stderr_unregularised.detach().cpu(), sol.snr.detach().cpu()
-    band_all = sol.band.cpu()
     rows, first = [], None
     for l in range(value.shape[0]):
         sel = band_all == l
+        rp = repros[l]
         row = _design_row(sol, l, sel, det_all[sel], dc, seu_all, snr_all, res_all)
         ok = bool(reached[l].all())
         bnd = ok and bool(bounded[l].any()) and bool(determined[l].all())
@@ -340,6 +357,13 @@ def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Ten
         row["ill_conditioned"] = not bool(determined[l].all())
         row["reason"] = filter_reason(ok, bool(precise[l].all()), bnd, row["error_bound"],
                                       l in aliased)
+        if rp["checked"] and not rp["reproducible"]:
+            row["reason"] += (f"; halves differ by chi2 {rp['chi2']:.3g} > {rp['limit']:.3g} "
+                              f"({rp['dof']} dof): errors widened {rp['widened_by']:.3g}x")
+        row["reproducibility_chi2"] = rp["chi2"] if rp["checked"] else None
+        row["reproducibility_limit"] = rp["limit"] if rp["checked"] else None
+        row["reproducible"] = rp["reproducible"] if rp["checked"] else None
+        row["widened_by"] = rp["widened_by"]
         if bnd:
             row["norm_upper_bound_rel"] = ZERO_BAND_LIMIT
         if l in aliased:
@@ -347,7 +371,7 @@ def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Ten
         if row["ill_conditioned"] and first is None:
             first = l
         rows.append(row)
-    return rows, first, determined
+    return rows, first, determined, stderr
 
 
 def apply_band_verdict(sol: LinearSolution, rows: list[dict]) -> None:

@@ -34,6 +34,7 @@ from .conditioning import (
     band_statistics,
     filter_band_rows,
     noise_level,
+    reproducibility,
 )
 from .memory import check_dense_memory
 from .parametric import ParametricFit, fit_brdf_parametric
@@ -99,7 +100,8 @@ class BRDFSHFit:
 def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.Tensor,
                 light_sh: torch.Tensor, lmax: int, variance: torch.Tensor | None = None,
                 diffuse: bool = True, rule: str = "gcv",
-                lmax_internal: int | None = None, horizon_cut: bool = True) -> BRDFSHFit:
+                lmax_internal: int | None = None, horizon_cut: bool = True,
+                view: torch.Tensor | None = None) -> BRDFSHFit:
     """Recover the radially symmetric SH-domain BRDF ``Â_l`` (and ``kd``) under known lighting.
 
     Parameters
@@ -127,6 +129,9 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         R&H's radial model has the whole lobe above the horizon, and the rim pixels where it is
         not bias the low bands (``docs/fitting.md``, "Problem 2: rim samples whose lobe the
         horizon cuts").
+    view : torch.Tensor, optional
+        ``(N,)`` view index per sample: the split halves of the model-free reproducibility
+        check (:func:`~.conditioning.filter_band_rows`) alternate views (else blocks).
 
     Returns
     -------
@@ -137,7 +142,7 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     if horizon_cut:
         args = dict(variance=variance, diffuse=diffuse, rule=rule, lmax_internal=lmax_internal)
         first = fit_brdf_sh(normal, reflected, radiance, light_sh, lmax, horizon_cut=False,
-                            **args)
+                            view=view, **args)
         keep, info = horizon_keep(normal, reflected, first.internal_filter)
         if keep is None:
             first.horizon = info
@@ -145,7 +150,8 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         var_k = None if variance is None else variance[keep]
         args["variance"] = var_k
         out = fit_brdf_sh(normal[keep], reflected[keep], radiance[keep], light_sh, lmax,
-                          horizon_cut=False, **args)
+                          horizon_cut=False, view=None if view is None else view[keep],
+                          **args)
         out.horizon = info
         return out
     n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
@@ -175,8 +181,11 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     w, src = noise_weights(b, var)
     pen = torch.ones(lf + 1, dtype=f64)  # white prior on Â_l (all O(1) or smaller)
     sol = solve_wls(design, b, w, bands, rule=rule, noise_known=var is not None,
-                    band_penalty=pen, noise_source=src)
-    # statistics only over the filter bands (kd reported separately)
+                    band_penalty=pen, noise_source=src,
+                    split=split_halves(b.shape[0], view))  # the model-free check
+    # statistics only over the filter bands (kd reported separately); the split halves too
+    kf = lmax + 1
+    sp = sol.split_coefficients is not None
     sol_f = LinearSolution(
         coefficients=sol.coefficients[: lmax + 1],
         coefficients_unregularised=sol.coefficients_unregularised[: lmax + 1],
@@ -184,7 +193,10 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
         determined=sol.determined[: lmax + 1], resolution=sol.resolution[: lmax + 1],
         lam=sol.lam, lam_rel=sol.lam_rel, chi2_reduced=sol.chi2_reduced, dof=sol.dof,
         rule=sol.rule, noise_source=sol.noise_source, n_samples=sol.n_samples,
-        band=bands[: lmax + 1], band_singular=sol.band_singular)
+        band=bands[: lmax + 1], band_singular=sol.band_singular,
+        split_coefficients=sol.split_coefficients[:, :kf] if sp else None,
+        split_covariance=sol.split_covariance[:, :, :kf, :kf] if sp else None,
+        split_determined=sol.split_determined[:, :kf] if sp else None)
     eps = noise_level(sol_f)
     # ρ̂_l is seen through all 2l+1 coefficients of band l: its information is the band norm
     # ||L_l||² = Σ_m L_lm² (not the mean over m, which is √(2l+1) too small; issue 12)
@@ -208,7 +220,7 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     # what the data resolve (conditioning.FILTER_DEFINITION): each band against its own value
     # (or bounded to nothing), on the bias-aware error; not against the DC term's error, which
     # called a band of SNR 1 "determined" (issue 12)
-    rows, ill, determined = filter_band_rows(sol_f, filt, filt_se, reached, aliased)
+    rows, ill, determined, filt_se = filter_band_rows(sol_f, filt, filt_se, reached, aliased)
     ambiguities = []
     if pairs:
         ambiguities.append({
@@ -220,9 +232,20 @@ def fit_brdf_sh(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.T
     checks = {"filter_dc_le_1": bool((filt[0] <= 1 + 3 * sol.stderr[0].clamp_max(1e300)).all()),
               "note": "Â_0 is the directional albedo of the specular lobe at normal exitance: "
                       "<= 1 for an energy-conserving BRDF"}
+    kd_se = sol.stderr[-1] if diffuse else None
+    if diffuse:
+        # kd through the same model-free check as the filter's bands (its own "band")
+        one = torch.zeros(sol.band.shape[0], dtype=torch.bool)
+        one[-1] = True
+        rp = reproducibility(sol, one, torch.ones(1, b.shape[1], dtype=torch.bool),
+                             sol.determined[-1].cpu())
+        if rp["checked"]:
+            kd_se = kd_se * rp["inflation"].sqrt().to(kd_se)
+            checks["kd_halves_agree"] = bool(rp["reproducible"])
+            checks["kd_widened_by"] = rp["widened_by"]
     return BRDFSHFit(lmax=lmax, filter=filt, filter_stderr=filt_se,
                      kd=sol.coefficients[-1] if diffuse else None,
-                     kd_stderr=sol.stderr[-1] if diffuse else None,
+                     kd_stderr=kd_se,
                      determined=determined, bands=rows,
                      ill_conditioned_from_l=ill, noise_level=eps, prediction=prediction,
                      solution=sol, checks=checks, ambiguities=ambiguities,

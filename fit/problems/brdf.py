@@ -85,13 +85,15 @@ def _filter_fit(samples, known: Known, opts: FitOptions, light: torch.Tensor):
     lmax = opts.brdf_lmax
     if known.lighting_at is None:
         return fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light, lmax,
-                           variance=samples.variance, rule=opts.rule), light
+                           variance=samples.variance, rule=opts.rule,
+                           view=getattr(samples, "view", None)), light
     k = lmax
     while True:
         k = min(PROBE_BAND_MAX, max(2 * k, k + 4))
         light_k = known.lighting_at(k)
         fit = fit_brdf_sh(samples.normal, samples.reflected, samples.radiance, light_k, lmax,
-                          variance=samples.variance, rule=opts.rule, lmax_internal=k)
+                          variance=samples.variance, rule=opts.rule, lmax_internal=k,
+                          view=getattr(samples, "view", None))
         if k >= PROBE_BAND_MAX or _tail_empty(fit):
             return fit, light_k
 
