@@ -13,17 +13,19 @@ from __future__ import annotations
 import math
 
 import torch
+from scipy.special import gammaincinv
 
 from brdfcap.core.errors import FitError
 
 from ..brdf import as_brdf_model, get_brdf_model, make_brdf
 from ..brdf_models import diffuse_filter, render_directional
-from ..conditioning import VERDICT_NOT_WIDENED, residual_adequacy
+from ..conditioning import REPRODUCIBILITY_LEVEL, VERDICT_NOT_WIDENED, residual_adequacy
 from ..inverse_brdf import fit_brdf_sh, horizon_lines
 from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric_models
 from ..records import conditioning_json
 from ..result import Estimate, FitResult
 from ..sh import band_of_index, real_sh
+from ..solve import split_halves
 from .base import FitOptions, Known, Problem, need_known_lighting, register_problem
 
 __all__ = ["problem_brdf", "fmt"]
@@ -49,7 +51,21 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
                             bounds=_search_bounds(model, opts))
     pred = render_directional(f.spec, samples.normal, samples.wo, samples.wi,
                               samples.light_radiance)
-    rec = {"brdf": _parametric_record(f, model, "fitted under known distant lights")}
+    # the model-free check, as under environment lighting (_halves_check)
+
+    def refit(m, bounds):
+        var = None if samples.variance is None else samples.variance[m]
+        return fit_brdf_parametric(samples.normal[m], samples.wo[m], samples.wi[m],
+                                   samples.light_radiance[m], samples.radiance[m], var,
+                                   model=model, bounds=bounds, checks=False)
+
+    halves = _halves_check(samples, f, model, refit)
+    f.prediction = pred
+    adequacy = _apply_halves(samples, f, halves, None)
+    rec = {"brdf": {**_parametric_record(f, model, "fitted under known distant lights"),
+                    "reproducibility": halves}}
+    if adequacy is not None:
+        rec["adequacy"] = adequacy
     summ = [f"Problem 2 (inverse BRDF, known distant lights): {_fitted_words(f, model)}."]
     return FitResult("brdf", _parametric_estimates(f), pred, rec, summary=summ)
 
@@ -159,10 +175,12 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     k0 = int(math.isqrt(light.shape[0])) - 1
     start = _start_spec(model, opts)
     k_use = _probe_band(start, k0, known) if start is not None else None
-    par = fit_at(known.lighting_at(k_use) if k_use else light)
+    lighting = known.lighting_at(k_use) if k_use else light
+    par = fit_at(lighting)
     k_need = _probe_band(par.spec, int(par.extra["lighting_lmax"]), known)
     if k_need:  # the probe re-projected to the bands the fitted lobe passes, and refitted
-        par = fit_at(known.lighting_at(k_need))
+        lighting = known.lighting_at(k_need)
+        par = fit_at(lighting)
     if int(par.extra["lighting_lmax"]) > k0:
         summ.append(f"The probe's SH projected to l = {par.extra['lighting_lmax']} for the "
                     f"parametric fit (not --brdf-lmax {k0}): the fitted {model} lobe passes "
@@ -185,8 +203,21 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
             adequacy["verdict"] = VERDICT_NOT_WIDENED
         elif adequacy["widen_applied"]:
             _widen(par, float(adequacy["widen"]))
+    # the model-free check: each half of the samples (alternate views) refitted
+    tr0 = par.extra.get("truncation") or {}
+    tau2 = torch.as_tensor(tr0["tau2"], dtype=torch.float64) if tr0.get("applied") else None
+
+    def refit(m, bounds):
+        var = None if samples.variance is None else samples.variance[m]
+        return fit_brdf_parametric_sh(samples.normal[m], samples.wo[m], samples.radiance[m],
+                                      lighting, var, model=model, bounds=bounds, checks=False,
+                                      tau2_start=tau2)
+
+    halves = _halves_check(samples, par, model, refit)
+    adequacy = _apply_halves(samples, par, halves, adequacy)
     rec = {"brdf": {**_parametric_record(par, model, "fitted under known SH lighting, exact "
-                                                     "reflection equation"), "sh": sh_json},
+                                                     "reflection equation"), "sh": sh_json,
+                    "reproducibility": halves},
            "conditioning": rec["conditioning"]}
     if adequacy is not None:
         rec["adequacy"] = adequacy
@@ -202,12 +233,104 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                      bands={"brdf": fit.bands}, restart=restart)
 
 
-def _widen(par, factor: float) -> None:
+#: The verdict of a parametric fit the model does not explain whose errors the split halves'
+#: disagreement widened (they are no longer the lower bounds of :data:`VERDICT_NOT_WIDENED`).
+VERDICT_HALVES = ("the model does not explain the data (see likely_causes); its errors are "
+                  "widened by the disagreement of two halves of the samples: a measured lower "
+                  "bound on what the model's error adds")
+
+
+def _widen(par, factor: float, why: str | None = None) -> None:
     """Scale a parametric fit's standard errors by ``factor`` (its covariance by its square)."""
     par.stderr = {k: v * factor for k, v in par.stderr.items()}
     par.covariance = par.covariance * factor ** 2
-    par.noise_source += (f"; errors widened {factor:.2g}x for the residual's spatial structure "
-                         "(AR(1) factor of its lag-1 autocorrelation, fit.conditioning)")
+    par.noise_source += why or (f"; errors widened {factor:.2g}x for the residual's spatial "
+                                "structure (AR(1) factor of its lag-1 autocorrelation, "
+                                "fit.conditioning)")
+
+
+def _flat(par) -> torch.Tensor:
+    """Return the fit's parameter vector in the order of ``par.names`` (``kd[0]``, …, ``s``)."""
+    out = []
+    for name in par.names:
+        key, _, idx = name.partition("[")
+        v = par.values[key].reshape(-1)
+        out.append(v[int(idx[:-1])] if idx else v[0])
+    return torch.stack(out).to(torch.float64)
+
+
+def _halves_check(samples, par, model: str, refit) -> dict | None:
+    """Refit a parametric BRDF on each split half; ``None`` when a half is too small.
+
+    The halves alternate views (:func:`~brdfcap.fit.solve.split_halves`; blocks of samples for
+    one view); ``refit(mask, bounds)`` fits the samples of one half with the lobe shape
+    searched within ``bounds`` (a factor ``e`` about the full fit's). ``χ² = dᵀ (C_A + C_B)⁻¹
+    d`` of the halves' parameter vectors against the
+    :data:`~brdfcap.fit.conditioning.REPRODUCIBILITY_LEVEL` quantile of ``χ²(P)``; above it
+    ``widened_by`` is the Birge ratio ``sqrt(χ²/P)`` (as the SH paths' bands).
+    """
+    n = samples.normal.shape[0]
+    view = getattr(samples, "view", None)
+    split = split_halves(n, view)
+    p = len(par.names)
+    masks = [split == h for h in (0, 1)]
+    if any(int(m.sum()) < 8 * p for m in masks):
+        return None
+    shape_name = get_brdf_model(model).shape_parameter
+    bounds = None
+    if shape_name is not None:
+        t = float(par.values[shape_name].reshape(-1)[0])
+        lo, hi = get_brdf_model(model).shape_bounds
+        bounds = (max(lo, t / math.e), min(hi, t * math.e))
+    fits = [refit(m, bounds) for m in masks]
+    d = _flat(fits[0]) - _flat(fits[1])
+    cov = fits[0].covariance + fits[1].covariance
+    if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(cov).all())):
+        return None
+    cov = 0.5 * (cov + cov.T)
+    z2 = float(d @ torch.linalg.lstsq(cov, d[:, None]).solution[:, 0])
+    lim = float(2.0 * gammaincinv(0.5 * p, REPRODUCIBILITY_LEVEL))
+    halves = "alternate views" if view is not None and \
+        torch.unique(view.reshape(-1)).numel() >= 2 else "alternate blocks of samples"
+    sd = cov.diagonal().clamp_min(1e-300).sqrt()
+    return {"halves": halves, "chi2": z2, "limit": lim, "dof": p, "reproducible": z2 <= lim,
+            "widened_by": math.sqrt(z2 / p) if z2 > lim else 1.0,
+            "difference_z": {nm: float(x) for nm, x in zip(par.names, d / sd)}}
+
+
+def _apply_halves(samples, par, halves: dict | None, adequacy: dict | None) -> dict | None:
+    """Widen ``par``'s errors by the halves' Birge ratio and say so in the adequacy verdict.
+
+    On top of what the residual's structure already widened (the larger of the two factors);
+    without a verdict of the fit's own (no noise model, distant lights) the residual is judged
+    after the fit (:func:`~brdfcap.fit.conditioning.residual_adequacy`). Returns the verdict
+    (``adequacy`` unchanged when the halves agree or were not checked).
+    """
+    if halves is None or halves["widened_by"] <= 1.0:
+        return adequacy
+    done = float(adequacy["widen"]) if adequacy is not None and \
+        adequacy.get("widen_applied") else 1.0
+    if halves["widened_by"] > done:
+        _widen(par, halves["widened_by"] / done,
+               f"; errors widened to {halves['widened_by']:.2g}x in all for the split "
+               f"halves' disagreement (Birge ratio of chi2 {halves['chi2']:.3g} > "
+               f"{halves['limit']:.3g}, {halves['dof']} parameters)")
+    if adequacy is None:
+        var = getattr(par, "variance", None)
+        adequacy = residual_adequacy(samples.radiance, par.prediction, var,
+                                     view=getattr(samples, "view", None),
+                                     n_params=len(par.names))
+    was = bool(adequacy["adequate"])
+    adequacy["adequate"] = False
+    adequacy["likely_causes"] = list(adequacy.get("likely_causes") or []) + [
+        f"the two halves of the samples ({halves['halves']}) give parameters that differ "
+        f"beyond their errors (chi2 {halves['chi2']:.3g} > {halves['limit']:.3g}, "
+        f"{halves['dof']} parameters): every error is widened {halves['widened_by']:.2g}x "
+        f"(Birge ratio)"]
+    adequacy["verdict"] = VERDICT_HALVES if not was else (
+        "the residual shows no misfit, but two halves of the samples disagree beyond their "
+        "errors (see likely_causes): the errors are widened by that disagreement")
+    return adequacy
 
 
 def _beyond_truncation(par, model: str) -> str | None:

@@ -189,7 +189,14 @@ def test_parametric_brdf_under_known_lighting_recovers_the_simulated_material(
     assert "BRDF (beckmann)" in res.output and "BRDF, SH-domain filter" in res.output
     notes = " ".join(r["fit_notes"])
     assert "beckmann fit" in notes and "Measured, no model" in notes
-    assert "band l = 3 measured, l = 3 predicted" in notes and "None" not in notes
+    assert "l = 3 predicted" in notes and "None" not in notes
+    # the model-free check: the exact Beckmann fit's halves (alternate views) agree; R&H's
+    # radial filter, which a Cook-Torrance lobe only approximates, differs between the halves
+    # far beyond its errors (measured chi2 6.3 < 24.3 against 228-484 > 10.8 per band), so
+    # its bands 0-2 are widened 15-22x (band 0 then imprecise: measured l* 0, predicted 3)
+    assert b["reproducibility"]["reproducible"] and b["reproducibility"]["widened_by"] == 1.0
+    for row in b["sh"]["bands"][:3]:
+        assert row["reproducible"] is False and row["widened_by"] > 5, row
     # the report's truth comparison (simulated capture) sees the same parameters
     z = [v for row in r["ground_truth"]["brdf"] for v in row["z"]]
     assert len(z) == 7 and max(abs(v) for v in z) < 4
