@@ -38,12 +38,14 @@ import math
 from dataclasses import dataclass, field
 
 import torch
+from scipy.special import gammaincinv
 
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import (
     FILTER_DEFINITION,
+    REPRODUCIBILITY_LEVEL,
     band_determined,
     band_statistics,
     data_resolved,
@@ -62,6 +64,7 @@ from .solve import (
     drop_nonfinite_directions,
     noise_weights,
     solve_wls,
+    split_halves,
 )
 
 __all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL", "NULL_COMPONENT_MIN", "PRODUCT_NULL_COSINE"]
@@ -174,7 +177,8 @@ class BilinearFit:
         return {"definition": gi["definition"], "quantities": gi["quantities"],
                 "stderr": [x if math.isfinite(x) else None for x in gi["stderr"].tolist()],
                 "determined": gi["determined"].tolist(),
-                "touched_by_null_direction": gi["touched_by_null_direction"]}
+                "touched_by_null_direction": gi["touched_by_null_direction"],
+                "reproducibility": gi.get("reproducibility")}
 
     def summary(self) -> list[str]:
         """Report lines."""
@@ -202,7 +206,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                  lmax: int, brdf_lmax: int = 8, variance: torch.Tensor | None = None,
                  rule: str = "gcv", model: str = "phong", s0: float = 32.0,
                  max_iter: int = 50, tol: float = 1e-6, horizon_cut: bool = True,
-                 view: torch.Tensor | None = None) -> BilinearFit:
+                 view: torch.Tensor | None = None, halves: bool = True) -> BilinearFit:
     """Recover lighting ``L``, albedo ``kd`` and specular filter ``f_l`` jointly (module doc).
 
     Parameters
@@ -233,6 +237,11 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         ``adequacy`` and its ``widen`` — the AR(1) variance inflation of a spatially structured
         residual, as problem 1's — scales every error (lighting, kd, filter, products) before
         the band verdicts, on top of ``sqrt(χ²/ν)``.
+    halves : bool
+        With ``horizon_cut``: refit each split half of the fitted samples (alternate views,
+        :func:`~brdfcap.fit.solve.split_halves`) and widen the gauge-invariant products whose
+        halves disagree beyond their errors by the Birge ratio (:func:`_products_halves`;
+        ``gauge_invariant["reproducibility"]``).
 
     Returns
     -------
@@ -241,7 +250,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     f64 = torch.float64
     if horizon_cut:
         kw = dict(lmax=lmax, brdf_lmax=brdf_lmax, rule=rule, model=model, s0=s0,
-                  max_iter=max_iter, tol=tol, horizon_cut=False)
+                  max_iter=max_iter, tol=tol, horizon_cut=False, halves=False)
         first = fit_bilinear(normal, reflected, radiance, variance=variance, view=view, **kw)
         keep, info = horizon_keep(normal, reflected, first.filter[:, None])
         if keep is not None:
@@ -256,6 +265,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                                 "factorisation; the factors may be biased by the rim")
         if keep is None:
             first.horizon = info
+            if halves:
+                _products_halves(first, normal, reflected, radiance, variance, view, kw)
             return first
         n_all, r_all, _ = drop_nonfinite_directions(normal, reflected, radiance)
         out.prediction = _prediction(n_all, r_all, out.lighting.coefficients, out.kd,
@@ -265,6 +276,10 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
             out.adequacy["verdict"] += (f" (judged on the {info['kept']} samples fitted; the "
                                         f"{info['of'] - info['kept']} rim samples left out are "
                                         f"not judged)")
+        if halves:
+            _products_halves(out, normal[keep], reflected[keep], radiance[keep],
+                             None if variance is None else variance[keep],
+                             None if view is None else view[keep], kw)
         return out
     n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
     var = None if variance is None else variance.to(f64)
@@ -654,6 +669,69 @@ def _product_resolution(yn, yr, w, band, lmax, lb) -> dict:
         keep = ev > NULL_RTOL * ev.max().clamp_min(1e-300)
         out[:, c] = (u[:, keep] ** 2).sum(-1)
     return {k: out[j] for j, k in enumerate(keys)}
+
+
+def _products_halves(fit: BilinearFit, normal, reflected, radiance, variance, view,
+                     kw: dict) -> None:
+    """Run the model-free check of the gauge-invariant products (issue 12), in place.
+
+    Each split half of ``fit``'s samples (alternate views, else blocks) is factorised again
+    (``kw``: the fit's options, no rim cut). Per group of products (kind, band, channel)
+    determined in the fit and in both halves, ``χ² = dᵀ (C_A + C_B)⁺ d`` of the halves'
+    difference against the :data:`~brdfcap.fit.conditioning.REPRODUCIBILITY_LEVEL` quantile of
+    ``χ²(n)``; above it the group's errors (and covariance) are widened by the Birge ratio
+    ``sqrt(χ²/n)``. The summary goes to ``fit.gauge_invariant["reproducibility"]`` (``None``
+    when a half cannot be factorised).
+    """
+    gi = fit.gauge_invariant
+    if not gi or "covariance" not in gi:
+        return
+    split = split_halves(normal.shape[0], view)
+    parts = []
+    for h in (0, 1):
+        m = split == h
+        try:
+            parts.append(fit_bilinear(normal[m], reflected[m], radiance[m],
+                                      variance=None if variance is None else variance[m],
+                                      view=None if view is None else view[m], **kw))
+        except FitError:
+            gi["reproducibility"] = None
+            return
+    ga, gb = parts[0].gauge_invariant, parts[1].gauge_invariant
+    if len(ga["quantities"]) != len(gi["quantities"]) or \
+            len(gb["quantities"]) != len(gi["quantities"]):
+        gi["reproducibility"] = None
+        return
+    groups: dict[tuple, list[int]] = {}
+    for j, q in enumerate(gi["quantities"]):
+        groups.setdefault((q["kind"], q["l"], q["channel"]), []).append(j)
+    det = gi["determined"] & ga["determined"] & gb["determined"]
+    fac = torch.ones(len(gi["quantities"]), dtype=torch.float64)
+    rows = []
+    for (kind, l, c), idx in groups.items():
+        ix = torch.tensor([j for j in idx if bool(det[j])], dtype=torch.long)
+        if ix.numel() == 0:
+            continue
+        d = ga["value"][ix] - gb["value"][ix]
+        cv = ga["covariance"][ix][:, ix] + gb["covariance"][ix][:, ix]
+        cv = 0.5 * (cv + cv.T)
+        if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(cv).all())):
+            continue
+        z2 = float(d @ torch.linalg.lstsq(cv, d[:, None]).solution[:, 0])
+        n = int(ix.numel())
+        lim = float(2.0 * gammaincinv(0.5 * n, REPRODUCIBILITY_LEVEL))
+        wb = math.sqrt(z2 / n) if z2 > lim else 1.0
+        fac[ix] = wb
+        rows.append({"kind": kind, "l": l, "channel": c, "chi2": z2, "limit": lim, "dof": n,
+                     "reproducible": z2 <= lim, "widened_by": wb})
+    gi["stderr"] = gi["stderr"] * fac
+    gi["covariance"] = gi["covariance"] * fac[:, None] * fac[None, :]
+    wide = [r for r in rows if not r["reproducible"]]
+    gi["reproducibility"] = {
+        "halves": "alternate views" if view is not None and
+        torch.unique(view.reshape(-1)).numel() >= 2 else "alternate blocks of samples",
+        "groups": rows, "groups_widened": len(wide),
+        "widened_by_max": max([r["widened_by"] for r in rows] or [1.0])}
 
 
 def _gauge_invariant(L, f, kd, band, lmax, lb, cov, nulls, resolution=None) -> dict:

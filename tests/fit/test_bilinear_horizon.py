@@ -76,3 +76,45 @@ def test_rim_samples_are_left_out_and_the_products_come_back_inside_their_interv
     assert chi2 < 1.3 and ndet == ntot and 0.90 <= cover <= 0.99
     assert hz["kept"] < hz["of"] and 45.0 < hz["lobe_radius_deg"] < 60.0 and hz["lobe_tail"] <= 1e-4
     assert any(line.startswith("Horizon: ") for line in f.summary())
+
+
+def test_products_halves_agree_on_consistent_views_and_widen_a_gain_mismatch():
+    """Problem 3's model-free check on the gauge-invariant products (issue 12).
+
+    The same rim-cut scene in four views: consistent, the halves (alternate views) agree on
+    every group of products (kind, band, channel) and nothing is widened; with two views 4%
+    brighter (an exposure the fit does not know) the low groups' halves disagree, their errors
+    are widened (Birge ratio) and the products come back inside their intervals. Measured:
+    consistent — 0 of 27 groups widened, coverage 0.987; mismatch — coverage 0.68 when the
+    halves mix the views (no view given: they cannot see it), with the views 27 of 27 groups
+    widened (up to 89x: 0.5% noise, so a 4% gain is far outside the errors), coverage 1.0.
+    """
+    spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
+    g = torch.Generator().manual_seed(0)
+    light = random_lighting(6, g, dc=1.0, amp=0.3)
+    n = unit(2000, g)
+    wo, r = views_above(n, g, spread=1.2)
+    front = (n * wo).sum(-1) > 0.05
+    n, wo, r = n[front], wo[front], r[front]
+    b = render_reference(spec, light, n, wo, rel_tol=1e-3)
+    sd = 0.005 * float(b.abs().mean())
+    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
+    var = torch.full_like(bn, sd ** 2)
+    view = torch.arange(n.shape[0]) % 4
+    out = {}
+    for name, data, v in (("consistent", bn, view),
+                          ("mismatch", bn * torch.where(view % 2 == 1, 1.04, 1.0)[:, None], view),
+                          ("mixed", bn * torch.where(view % 2 == 1, 1.04, 1.0)[:, None], None)):
+        f = fit_bilinear(n, r, data, 6, brdf_lmax=6, variance=var, view=v)
+        gi = f.gauge_invariant
+        det = gi["determined"]
+        truth = _truth(gi["quantities"], light, spec.kd.tolist())
+        z = (gi["value"] - truth) / gi["stderr"]
+        out[name] = (gi["reproducibility"], float((z[det].abs() < 1.96).double().mean()))
+    print({k: (v[0]["groups_widened"], round(v[0]["widened_by_max"], 1), v[1])
+           for k, v in out.items()})
+    rp, cover = out["consistent"]
+    assert rp["halves"] == "alternate views" and rp["groups_widened"] == 0 and cover >= 0.9
+    rp, cover = out["mismatch"]
+    assert rp["groups_widened"] >= 10 and rp["widened_by_max"] > 10 and cover >= 0.9
+    assert out["mixed"][1] < 0.8 and out["mixed"][0]["groups_widened"] == 0
