@@ -39,12 +39,8 @@ def _truth(quantities, light, kd, ks=0.5, s=20.0):
     return torch.tensor(out, dtype=torch.float64)
 
 
-def test_rim_samples_are_left_out_and_the_products_come_back_inside_their_intervals():
-    """Rim kept: χ²/ν 279, 49.8% of the 237 products inside their 95% intervals; rim left out
-    (1207 of 1810 samples: the lobe's 53° radius from the first fit's filter, beyond which 1e-4
-    of its energy lies): χ²/ν 1.11, 237 of 237 determined, coverage 0.987 (measured; with the
-    1% radius of session 17, 38°: 755 left out, coverage 0.945).
-    """
+def _scene():
+    """The rim scene: ``(spec, light, normal, reflected, noisy radiance, variance)``."""
     spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
     g = torch.Generator().manual_seed(0)
     light = random_lighting(6, g, dc=1.0, amp=0.3)
@@ -55,7 +51,16 @@ def test_rim_samples_are_left_out_and_the_products_come_back_inside_their_interv
     b = render_reference(spec, light, n, wo, rel_tol=1e-3)
     sd = 0.005 * float(b.abs().mean())
     bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
-    var = torch.full_like(bn, sd ** 2)
+    return spec, light, n, r, bn, torch.full_like(bn, sd ** 2)
+
+
+def test_rim_samples_are_left_out_and_the_products_come_back_inside_their_intervals():
+    """Rim kept: χ²/ν 279, 49.8% of the 237 products inside their 95% intervals; rim left out
+    (1207 of 1810 samples: the lobe's 53° radius from the first fit's filter, beyond which 1e-4
+    of its energy lies): χ²/ν 1.11, 237 of 237 determined, coverage 0.987 (measured; with the
+    1% radius of session 17, 38°: 755 left out, coverage 0.945).
+    """
+    spec, light, n, r, bn, var = _scene()
     out = {}
     for cut in (False, True):
         f = fit_bilinear(n, r, bn, 6, brdf_lmax=6, variance=var, horizon_cut=cut)
@@ -89,17 +94,7 @@ def test_products_halves_agree_on_consistent_views_and_widen_a_gain_mismatch():
     halves mix the views (no view given: they cannot see it), with the views 27 of 27 groups
     widened (up to 89x: 0.5% noise, so a 4% gain is far outside the errors), coverage 1.0.
     """
-    spec = BRDFSpec("phong", kd=[0.6, 0.4, 0.3], ks=[0.5, 0.5, 0.5], s=20.0)
-    g = torch.Generator().manual_seed(0)
-    light = random_lighting(6, g, dc=1.0, amp=0.3)
-    n = unit(2000, g)
-    wo, r = views_above(n, g, spread=1.2)
-    front = (n * wo).sum(-1) > 0.05
-    n, wo, r = n[front], wo[front], r[front]
-    b = render_reference(spec, light, n, wo, rel_tol=1e-3)
-    sd = 0.005 * float(b.abs().mean())
-    bn = b + sd * torch.randn(b.shape, generator=g, dtype=torch.float64)
-    var = torch.full_like(bn, sd ** 2)
+    spec, light, n, r, bn, var = _scene()
     view = torch.arange(n.shape[0]) % 4
     out = {}
     for name, data, v in (("consistent", bn, view),
