@@ -317,24 +317,27 @@ def solve_wls(design: torch.Tensor | Callable[[int, int], torch.Tensor], b: torc
     for s, e, a in _design_chunks(design, n, chunk):
         a = a.to(torch.float64)
         for h in range(halves):
-            ws = w[s:e] if sp is None else w[s:e] * (sp[s:e] == h)[:, None]
+            # each half's rows only (each row enters one product: a split costs no more)
+            rows = slice(None) if sp is None else torch.nonzero(sp[s:e] == h).flatten()
+            ah, ws, bh = (a, w[s:e], b[s:e]) if sp is None else \
+                (a[rows], w[s:e][rows], b[s:e][rows])
             gram, rhs = gram_h[h], rhs_h[h]
-            if a.ndim == 2 and shared_w:  # one Gram for all channels, scaled
-                aw = a * ws[:, :1]
-                g1 = aw.T @ a
-                r1 = aw.T @ b[s:e]  # (K, C)
+            if ah.ndim == 2 and shared_w:  # one Gram for all channels, scaled
+                aw = ah * ws[:, :1]
+                g1 = aw.T @ ah
+                r1 = aw.T @ bh  # (K, C)
                 for c in range(nch):
                     sc = 1.0 if cs is None else cs[c]
                     gram[c] += g1 * sc * sc
                     rhs[c] += r1[:, c] * sc
                 continue
             for c in range(nch):
-                ac = a if a.ndim == 2 else a[:, c, :]
+                ac = ah if ah.ndim == 2 else ah[:, c, :]
                 if cs is not None:
                     ac = ac * cs[c]
                 awc = ac * ws[:, c:c + 1]
                 gram[c] += awc.T @ ac
-                rhs[c] += awc.T @ b[s:e, c]
+                rhs[c] += awc.T @ bh[:, c]
     gram, rhs = gram_h.sum(0), rhs_h.sum(0)
     split_ok = sp is not None and all(bool((w[sp == h] > 0).any()) for h in (0, 1))
     split_x = torch.zeros(2, k, nch, dtype=torch.float64, device=dev) if split_ok else None
