@@ -85,6 +85,8 @@ class RunOptions:
     brdf_lmax: int = 8  # highest band of SH-domain BRDF filters (problems brdf/both)
     #: problem 1's forward model of a glossy BRDF: "exact" (quadrature) or "rh" (R&H 2001)
     design: str = "exact"
+    #: problem 1's solver: "bayes" (marginal-likelihood prior) or "tikhonov" (--rule)
+    method: str = "bayes"
 
 
 @dataclass
@@ -183,7 +185,8 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
                        capture.config.toml_path)
     check_lmax(options.problem, options.lmax, capture.config.toml_path)
     fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
-                          brdf_lmax=options.brdf_lmax, design=options.design)
+                          brdf_lmax=options.brdf_lmax, design=options.design,
+                          method=options.method)
     return solve_problem(options.problem, samples, known_of(capture, options, samples),
                          fit_opts)
 

@@ -905,6 +905,7 @@ def fit_lighting(normal: torch.Tensor, radiance: torch.Tensor, lmax: int | str,
     fit.brdf = spec
     fit.solution = sol
     fit.design = _design_record(spec, design)
+    fit.method = "tikhonov"
     return fit
 
 

@@ -54,6 +54,8 @@ def lighting_json(fit: SHFit) -> dict:
     if getattr(fit, "method", "") == "bayes":  # issue 12: posterior, adequacy, suggested lmax
         out["ill_conditioning_definition"] = fit.regularization["definition"]
         out.update(fit.uncertainty_json())
+    elif getattr(fit, "method", "") == "tikhonov":
+        out["method"] = "tikhonov"
     return out
 
 

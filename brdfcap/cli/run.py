@@ -190,6 +190,12 @@ class LmaxType(click.ParamType):
                    "exact (quadrature of the BRDF, slower) or rh (Ramamoorthi & Hanrahan "
                    "2001's reflection-space filter and small-angle source lobes, fast but "
                    "approximate: biased for rough or grazing lobes; docs/fitting.md).")
+@click.option("--method", type=click.Choice(["bayes", "tikhonov"]), default="bayes",
+              show_default=True,
+              help="Problem lighting's solver: bayes (a power-law prior on the spectrum set by "
+                   "marginal likelihood, solved past --lmax and marginalised) or tikhonov "
+                   "(per-band penalty chosen by --rule, solved to --lmax only; the split-half "
+                   "check on its bands; docs/fitting.md, 'Tikhonov definition').")
 @click.option("--jobs", "-j", type=click.IntRange(0, 4096), default=1, show_default=True,
               help="Dask workers for a batch: local worker processes (0: one per CPU core), "
                    "or job-queue workers with --cluster (docs/batch.md).")
@@ -227,7 +233,8 @@ class LmaxType(click.ParamType):
               "object (key numbers with errors, ill-conditioned bands, warnings, paths).")
 @click.pass_obj
 def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int | str, device: str,
-            problem: str, brdf: str | None, rule: str, brdf_lmax: int, design: str, jobs: int,
+            problem: str, brdf: str | None, rule: str, brdf_lmax: int, design: str,
+            method: str, jobs: int,
             scheduler: str | None, cluster: str | None, cluster_config: Path | None,
             connect_timeout: float, allow_outside: bool, force: bool, progress: bool | None,
             bench: bool, profile: bool, export: bool, debug_local: bool, quiet: bool = False,
@@ -266,13 +273,18 @@ def run_cmd(obj: CliState, path: Path | None, out: Path | None, lmax: int | str,
     except BrdfcapError as exc:
         fail(exc, debug)
     single = len(captures) == 1 and captures[0] == path
-    if problem == "lighting" and click.get_current_context().get_parameter_source("rule") \
+    if method == "tikhonov" and lmax == "auto":
+        fail(BrdfcapError("--lmax auto is chosen from the Bayesian fit's bands: give --method "
+                          "bayes, or an integer --lmax with --method tikhonov"), debug)
+    if problem == "lighting" and method == "bayes" and \
+            click.get_current_context().get_parameter_source("rule") \
             == click.core.ParameterSource.COMMANDLINE and not quiet:
         click.echo(f"note: --rule {rule} is not used by problem lighting, whose prior is set "
                    f"by marginal likelihood (docs/fitting.md, 'Uncertainty'); it applies to "
-                   f"problems brdf, both and decomposition", err=True)
+                   f"problems brdf, both and decomposition, and to lighting with --method "
+                   f"tikhonov", err=True)
     opts = RunOptions(lmax=lmax, device=device, problem=problem, brdf=brdf, rule=rule,
-                      brdf_lmax=brdf_lmax, design=design)
+                      brdf_lmax=brdf_lmax, design=design, method=method)
     # every option of this command with its resolved value (defaults included), for config.json
     # (paths made absolute, so that the config.json re-runs from any directory)
     cli = {k: (str(v.resolve()) if isinstance(v, Path) else v)

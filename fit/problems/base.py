@@ -51,6 +51,9 @@ class FitOptions:
     rule: str = "gcv"
     brdf_lmax: int = 8
     design: str = "exact"
+    #: problem lighting's solver: ``"bayes"`` (prior by marginal likelihood) or ``"tikhonov"``
+    #: (per-band penalty, ``rule``; :func:`brdfcap.fit.inverse_lighting.fit_lighting`)
+    method: str = "bayes"
     #: a first solve's estimates (``{name: value}``), given to a second solve of the same
     #: problem (:func:`brdfcap.fit.problems.solve_problem`'s reweighting) to start its search
     #: there; ``None`` for a first solve

@@ -41,6 +41,7 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
     fit = fit_lighting(samples.normal, samples.radiance, opts.lmax, spec,
                        reflected=samples.reflected, variance=samples.variance, rule=opts.rule,
                        noise_model=known.noise, view=samples.view, design=opts.design,
+                       method=opts.method,
                        clip=known.clip_of(samples),
                        dark=known.dark_of(samples),
                        scale_fixing="" if given else (

@@ -142,6 +142,29 @@ def test_problem_brdf_environment_halves_widen_what_the_residual_cannot_size(cap
     assert any("Birge ratio" in c for c in ad["likely_causes"])
 
 
+def test_problem_lighting_method_tikhonov(captures, tmp_path):
+    """``--method tikhonov`` (documented in docs/fitting.md, "Tikhonov definition"): problem 1
+    with the per-band penalty of ``--rule``, its bands judged by the Tikhonov definition with
+    the split-half check (six views: alternate views), the option recorded; ``--lmax auto``
+    with it is refused in one line.
+    """
+    r = _run(captures["env"], tmp_path / "o", "--problem", "lighting", "--method", "tikhonov",
+             "--lmax", "4", "--rule", "none")
+    lt = r["lighting"]
+    assert lt["method"] == "tikhonov" and r["options"]["method"] == "tikhonov"
+    assert lt["regularization"]["rule"] == "none"
+    assert lt["ill_conditioning_definition"].startswith("Band l is determined when (1)")
+    checked = [b for b in lt["bands"] if b["reproducible"] is not None]
+    assert checked and all("widened_by" in b for b in lt["bands"])
+    # the Grace lighting is band-limited to l = 2: bands 0-2 determined, within their errors
+    assert lt["ill_conditioned_from_l"] is None or lt["ill_conditioned_from_l"] >= 3
+    res = CliRunner().invoke(main, ["run", str(captures["env"]), "--out", str(tmp_path / "a"),
+                                    "--problem", "lighting", "--method", "tikhonov",
+                                    "--lmax", "auto"])
+    assert res.exit_code != 0 and "Traceback" not in res.output
+    assert "--method bayes" in res.output and len(res.output.strip().splitlines()) == 1
+
+
 def test_lmax_auto_reports_the_band_the_data_determine(captures, tmp_path):
     """``--lmax auto`` (issue 12: "brdfcap run suggests an lmax, or --lmax auto"): problem 1
     reports up to its suggested band; a fixed --lmax that differs from it gets the suggestion
