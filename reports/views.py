@@ -187,7 +187,7 @@ def headline(results: dict) -> dict:
                                + fmt_rgb_pm([x["value"] for x, _ in dc], [e for _, e in dc])
                                + "; " if dc else "")
                      + f"{n_det} of {len(q)} products determined (the rest move with an "
-                       "ambiguity)",
+                       "ambiguity)" + _halves_text(gi.get("reproducibility")),
                      "measured": "", "predicted": "", "cite": ""})
     params = brdf.get("parameters") or {}
     errs = _param_errors(brdf)
@@ -667,6 +667,18 @@ def read_truth(capture_dir: str | Path) -> dict | None:
 
 #: How each kind of gauge-invariant product reads (:func:`brdfcap.fit.bilinear._gauge_invariant`;
 #: R&H 2001 §5 and eq. 8).
+def _halves_text(rp: dict | None) -> str:
+    """``; the split halves (…) widened …`` for problem both's products ('' when unchecked)."""
+    if not isinstance(rp, dict) or not rp.get("groups"):
+        return ""
+    n, t = int(rp.get("groups_widened") or 0), len(rp["groups"])
+    if n == 0:
+        return f"; the two halves of the samples ({rp.get('halves', '')}) agree on all {t} groups"
+    return (f"; the two halves of the samples ({rp.get('halves', '')}) disagree on {n} of {t} "
+            f"groups (kind, band, channel), whose errors are widened up to "
+            f"{fmt_num(rp.get('widened_by_max'), 2)}x")
+
+
 _GAUGE_KINDS = {"dc": "(kd + f₀) L₀₀", "specular": "f_l L_lm", "diffuse": "kd Â_l/π L_lm"}
 
 

@@ -236,6 +236,11 @@ def test_problem_both_reports_ambiguities(captures, tmp_path):
     n_det = sum(bool(d) for d in gi["determined"])
     counts = [int(x) for x in re.findall(r"<td>(\d+) of \d+</td>", html)]
     assert sum(counts) == n_det
+    # the split-half check on the products (alternate views), said in the summary
+    rp = gi["reproducibility"]
+    assert rp["halves"] == "alternate views" and rp["groups"]
+    assert rp["groups_widened"] == sum(not g["reproducible"] for g in rp["groups"])
+    assert "two halves of the samples (alternate views)" in html
 
 
 def test_problem_brdf_isotropic_run_option(captures, tmp_path):
