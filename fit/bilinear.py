@@ -67,7 +67,8 @@ from .solve import (
     split_halves,
 )
 
-__all__ = ["BilinearFit", "fit_bilinear", "NULL_RTOL", "NULL_COMPONENT_MIN", "PRODUCT_NULL_COSINE"]
+__all__ = ["BilinearFit", "fit_bilinear", "check_products_halves", "NULL_RTOL",
+           "NULL_COMPONENT_MIN", "PRODUCT_NULL_COSINE"]
 
 #: Eigenvalues of the Jacobi-scaled joint normal matrix below this fraction of the largest are
 #: exact ambiguities (null directions); float64 normal equations resolve ~1e-16, the structural
@@ -127,6 +128,10 @@ class BilinearFit:
     #: conditioning.residual_adequacy of the fitted samples, its ``widen`` applied to every
     #: error (issue 12: a model that does not explain the data widens its claims)
     adequacy: dict | None = None
+    #: (N,) bool: the samples fitted (the rim cut's ``keep``), ``None`` for all of them
+    kept: torch.Tensor | None = None
+    #: the factorisation's options, for refits of its samples (:func:`check_products_halves`)
+    refit_options: dict = field(default_factory=dict)
 
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
@@ -240,8 +245,9 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     halves : bool
         With ``horizon_cut``: refit each split half of the fitted samples (alternate views,
         :func:`~brdfcap.fit.solve.split_halves`) and widen the gauge-invariant products whose
-        halves disagree beyond their errors by the Birge ratio (:func:`_products_halves`;
-        ``gauge_invariant["reproducibility"]``).
+        halves disagree beyond their errors by the Birge ratio (:func:`check_products_halves`;
+        ``gauge_invariant["reproducibility"]``). ``False``: left to the caller (problem both
+        runs it on its final solve only, after the noise reweighting).
 
     Returns
     -------
@@ -265,8 +271,9 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                                 "factorisation; the factors may be biased by the rim")
         if keep is None:
             first.horizon = info
+            first.refit_options = kw
             if halves:
-                _products_halves(first, normal, reflected, radiance, variance, view, kw)
+                check_products_halves(first, normal, reflected, radiance, variance, view)
             return first
         n_all, r_all, _ = drop_nonfinite_directions(normal, reflected, radiance)
         out.prediction = _prediction(n_all, r_all, out.lighting.coefficients, out.kd,
@@ -276,10 +283,9 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
             out.adequacy["verdict"] += (f" (judged on the {info['kept']} samples fitted; the "
                                         f"{info['of'] - info['kept']} rim samples left out are "
                                         f"not judged)")
+        out.kept, out.refit_options = keep, kw
         if halves:
-            _products_halves(out, normal[keep], reflected[keep], radiance[keep],
-                             None if variance is None else variance[keep],
-                             None if view is None else view[keep], kw)
+            check_products_halves(out, normal, reflected, radiance, variance, view)
         return out
     n, r, b = drop_nonfinite_directions(normal, reflected, radiance)
     var = None if variance is None else variance.to(f64)
@@ -671,21 +677,29 @@ def _product_resolution(yn, yr, w, band, lmax, lb) -> dict:
     return {k: out[j] for j, k in enumerate(keys)}
 
 
-def _products_halves(fit: BilinearFit, normal, reflected, radiance, variance, view,
-                     kw: dict) -> None:
+def check_products_halves(fit: BilinearFit, normal, reflected, radiance, variance=None,
+                          view=None) -> None:
     """Run the model-free check of the gauge-invariant products (issue 12), in place.
 
-    Each split half of ``fit``'s samples (alternate views, else blocks) is factorised again
-    (``kw``: the fit's options, no rim cut). Per group of products (kind, band, channel)
-    determined in the fit and in both halves, ``χ² = dᵀ (C_A + C_B)⁺ d`` of the halves'
-    difference against the :data:`~brdfcap.fit.conditioning.REPRODUCIBILITY_LEVEL` quantile of
-    ``χ²(n)``; above it the group's errors (and covariance) are widened by the Birge ratio
-    ``sqrt(χ²/n)``. The summary goes to ``fit.gauge_invariant["reproducibility"]`` (``None``
-    when a half cannot be factorised).
+    ``normal`` … ``view``: the samples given to :func:`fit_bilinear` (its ``kept`` ones are
+    used). Each split half of the fitted samples (alternate views, else blocks) is factorised
+    again with the fit's options (``refit_options``, no rim cut). Per group of products
+    (kind, band, channel) determined in the fit and in both halves, ``χ² = dᵀ (C_A + C_B)⁺ d``
+    of the halves' difference against the
+    :data:`~brdfcap.fit.conditioning.REPRODUCIBILITY_LEVEL` quantile of ``χ²(n)``; above it
+    the group's errors (and covariance) are widened by the Birge ratio ``sqrt(χ²/n)``. The
+    summary goes to ``fit.gauge_invariant["reproducibility"]`` (``None`` when a half cannot be
+    factorised).
     """
     gi = fit.gauge_invariant
-    if not gi or "covariance" not in gi:
+    if not gi or "covariance" not in gi or not fit.refit_options:
         return
+    kw = fit.refit_options
+    if fit.kept is not None:
+        k = fit.kept
+        normal, reflected, radiance = normal[k], reflected[k], radiance[k]
+        variance = None if variance is None else variance[k]
+        view = None if view is None else view[k]
     split = split_halves(normal.shape[0], view)
     parts = []
     for h in (0, 1):

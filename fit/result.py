@@ -154,6 +154,10 @@ class FitResult:
         Hyper-parameters a second solve of the same problem keeps (the reweighting of
         :func:`brdfcap.fit.problems.solve_problem` passes them in ``FitOptions.start``; not
         written to ``results.json``), e.g. ``aldrian-smith``'s evidence-chosen smoothness.
+    finalize : callable or None
+        Work on the *final* solve only, ``finalize(result)`` in place — problems brdf and
+        both's split-half refits, which a first solve followed by the noise reweighting
+        would do for nothing; :func:`brdfcap.fit.problems.solve_problem` calls it once.
     """
 
     problem: str
@@ -169,6 +173,7 @@ class FitResult:
     known_albedo: torch.Tensor | None = None
     bands: dict[str, list[dict]] = field(default_factory=dict)
     restart: dict = field(default_factory=dict)
+    finalize: Any = None
 
     def __post_init__(self) -> None:
         if not self.bands and self.lighting is not None and getattr(self.lighting, "bands",

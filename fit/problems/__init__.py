@@ -57,6 +57,9 @@ def solve_problem(name: str, samples, known: Known, options: FitOptions) -> FitR
             res = problem.solve(samples, known, replace(options, start=start))
             res.record["noise_reweighting"] = note
             res.summary.append(note["text"])
+    if res.finalize is not None:  # the final solve's own work (e.g. the split-half refits)
+        res.finalize(res)
+        res.finalize = None
     res.record.setdefault("fit_schema", FIT_SCHEMA)
     _state_adequacy(res, samples, known)
     return res

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from ..bilinear import fit_bilinear
+from ..bilinear import check_products_halves, fit_bilinear
 from ..result import Estimate, FitResult
 from .base import (
     FitOptions,
@@ -53,9 +53,10 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
     """Problem 3: lighting and BRDF both unknown (bilinear, :mod:`brdfcap.fit.bilinear`)."""
     need_environment(known)
     model = opts.brdf or (known.material or {}).get("model", "phong")
+    view = getattr(samples, "view", None)
     res = fit_bilinear(samples.normal, samples.reflected, samples.radiance, opts.lmax,
                        brdf_lmax=opts.brdf_lmax, variance=samples.variance, rule=opts.rule,
-                       model=model, view=getattr(samples, "view", None))
+                       model=model, view=view, halves=False)
     note = "joint Gauss-Newton errors (the lighting's uncertainty included)"
     est = [lighting_estimate(res.lighting),
            Estimate("kd", res.kd, res.kd_stderr, "channel", note=note),
@@ -63,9 +64,17 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
                     determined=res.filter_determined,
                     note="specular filter f_l (f_0 = 1), the same in every channel; " + note),
            *gauge_estimates(res.gauge_invariant)]
+    def finalize(out):
+        # the model-free check of the products on the final solve (fit.bilinear)
+        check_products_halves(res, samples.normal, samples.reflected, samples.radiance,
+                              samples.variance, view)
+        out.record["gauge_invariant"] = res.to_results()["gauge_invariant"]
+        out.estimates = est[:3] + gauge_estimates(res.gauge_invariant)
+
     return FitResult("both", est, res.prediction, res.to_results(), summary=res.summary(),
                      ambiguities=list(res.ambiguities), lighting=res.lighting,
-                     bands={"lighting": res.lighting.bands, "brdf": res.filter_bands})
+                     bands={"lighting": res.lighting.bands, "brdf": res.filter_bands},
+                     finalize=finalize)
 
 
 register_problem(Problem(

@@ -59,15 +59,23 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
                                    samples.light_radiance[m], samples.radiance[m], var,
                                    model=model, bounds=bounds, checks=False)
 
-    halves = _halves_check(samples, f, model, refit)
     f.prediction = pred
-    adequacy = _apply_halves(samples, f, halves, None)
-    rec = {"brdf": {**_parametric_record(f, model, "fitted under known distant lights"),
-                    "reproducibility": halves}}
-    if adequacy is not None:
-        rec["adequacy"] = adequacy
+    source = "fitted under known distant lights"
+    rec = {"brdf": {**_parametric_record(f, model, source), "reproducibility": None}}
+
+    def finalize(res):
+        halves = _halves_check(samples, f, model, refit)
+        ad = _apply_halves(samples, f, halves, None)
+        res.record["brdf"] = {**_parametric_record(f, model, source), "reproducibility": halves}
+        if ad is not None:
+            res.record["adequacy"] = ad
+        res.estimates = _parametric_estimates(f)
+        res.summary[0] = f"Problem 2 (inverse BRDF, known distant lights): " \
+                         f"{_fitted_words(f, model)}."
+
     summ = [f"Problem 2 (inverse BRDF, known distant lights): {_fitted_words(f, model)}."]
-    return FitResult("brdf", _parametric_estimates(f), pred, rec, summary=summ)
+    return FitResult("brdf", _parametric_estimates(f), pred, rec, summary=summ,
+                     finalize=finalize)
 
 
 def _tail_empty(fit) -> bool:
@@ -203,9 +211,26 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
             adequacy["verdict"] = VERDICT_NOT_WIDENED
         elif adequacy["widen_applied"]:
             _widen(par, float(adequacy["widen"]))
-    # the model-free check: each half of the samples (alternate views) refitted
-    tr0 = par.extra.get("truncation") or {}
-    tau2 = torch.as_tensor(tr0["tau2"], dtype=torch.float64) if tr0.get("applied") else None
+    source = "fitted under known SH lighting, exact reflection equation"
+
+    def head():
+        return (f"Problem 2 (inverse BRDF, known SH lighting to l = "
+                f"{par.extra['lighting_lmax']}): {_fitted_words(par, model)} (exact reflection "
+                f"equation).")
+
+    rec = {"brdf": {**_parametric_record(par, model, source), "sh": sh_json,
+                    "reproducibility": None},
+           "conditioning": rec["conditioning"]}
+    if adequacy is not None:
+        rec["adequacy"] = adequacy
+    summ = [head()] + \
+        [s.replace("Problem 2 (inverse BRDF, known SH lighting): ", "Measured, no model: ")
+         for s in summ]
+    filter_est = est[0]
+    tr = par.extra.get("truncation") or {}
+    restart = ({"truncation_tau2": tr["tau2"], "truncation_lmax":
+                int(par.extra["lighting_lmax"])} if tr.get("applied") else {})
+    tau2 = torch.as_tensor(tr["tau2"], dtype=torch.float64) if tr.get("applied") else None
 
     def refit(m, bounds):
         var = None if samples.variance is None else samples.variance[m]
@@ -213,24 +238,20 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                                       lighting, var, model=model, bounds=bounds, checks=False,
                                       tau2_start=tau2)
 
-    halves = _halves_check(samples, par, model, refit)
-    adequacy = _apply_halves(samples, par, halves, adequacy)
-    rec = {"brdf": {**_parametric_record(par, model, "fitted under known SH lighting, exact "
-                                                     "reflection equation"), "sh": sh_json,
-                    "reproducibility": halves},
-           "conditioning": rec["conditioning"]}
-    if adequacy is not None:
-        rec["adequacy"] = adequacy
-    summ = [f"Problem 2 (inverse BRDF, known SH lighting to l = {par.extra['lighting_lmax']}): "
-            f"{_fitted_words(par, model)} (exact reflection equation)."] + \
-        [s.replace("Problem 2 (inverse BRDF, known SH lighting): ", "Measured, no model: ")
-         for s in summ]
-    est = _parametric_estimates(par) + [est[0]]
-    tr = par.extra.get("truncation") or {}
-    restart = ({"truncation_tau2": tr["tau2"], "truncation_lmax":
-                int(par.extra["lighting_lmax"])} if tr.get("applied") else {})
-    return FitResult("brdf", est, par.prediction, rec, summary=summ, warnings=warns,
-                     bands={"brdf": fit.bands}, restart=restart)
+    def finalize(res):
+        # the model-free check on the final solve: each half (alternate views) refitted
+        halves = _halves_check(samples, par, model, refit)
+        ad = _apply_halves(samples, par, halves, res.record.get("adequacy"))
+        res.record["brdf"] = {**_parametric_record(par, model, source), "sh": sh_json,
+                              "reproducibility": halves}
+        if ad is not None:
+            res.record["adequacy"] = ad
+        res.estimates = _parametric_estimates(par) + [filter_est]
+        res.summary[0] = head()
+
+    return FitResult("brdf", _parametric_estimates(par) + [filter_est], par.prediction, rec,
+                     summary=summ, warnings=warns, bands={"brdf": fit.bands}, restart=restart,
+                     finalize=finalize)
 
 
 #: The verdict of a parametric fit the model does not explain whose errors the split halves'
