@@ -303,7 +303,10 @@ def _halves_check(samples, par, model: str, refit) -> dict | None:
         t = float(par.values[shape_name].reshape(-1)[0])
         lo, hi = get_brdf_model(model).shape_bounds
         bounds = (max(lo, t / math.e), min(hi, t * math.e))
-    fits = [refit(m, bounds) for m in masks]
+    try:
+        fits = [refit(m, bounds) for m in masks]
+    except FitError:  # a half the model cannot be fitted to: nothing to compare
+        return None
     d = _flat(fits[0]) - _flat(fits[1])
     cov = fits[0].covariance + fits[1].covariance
     if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(cov).all())):
