@@ -14,11 +14,18 @@ import math
 from dataclasses import dataclass, field
 
 import torch
+from scipy.special import gammaincinv
 
 from brdfcap.core.errors import FitError
 
-from .conditioning import REL_STDERR_LIMIT
-from .solve import EIG_RTOL, RESOLUTION_LIMIT, VARIANCE_FLOOR_REL, noise_weights
+from .conditioning import REL_STDERR_LIMIT, REPRODUCIBILITY_LEVEL
+from .solve import (
+    EIG_RTOL,
+    RESOLUTION_LIMIT,
+    VARIANCE_FLOOR_REL,
+    noise_weights,
+    split_halves,
+)
 
 __all__ = ["SHFit", "AlbedoFit", "fit_lighting_lambertian", "fit_albedo_directional",
            "REL_STDERR_LIMIT", "RESOLUTION_LIMIT", "EIG_RTOL", "VARIANCE_FLOOR_REL"]
@@ -123,6 +130,9 @@ class AlbedoFit:
     chi2_reduced: torch.Tensor  # (C,)
     noise_source: str
     n_samples: int
+    #: the split-half check (alternate views): ``halves``, per channel ``chi2``, ``limit``,
+    #: ``reproducible``, ``widened_by`` (the factor ``stderr`` carries); ``None`` unchecked
+    reproducibility: dict | None = None
 
 
 def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax: int,
@@ -189,12 +199,16 @@ def fit_lighting_lambertian(normals: torch.Tensor, radiance: torch.Tensor, lmax:
 
 
 def fit_albedo_directional(normals: torch.Tensor, wi: torch.Tensor, light_radiance: torch.Tensor,
-                           radiance: torch.Tensor, variance: torch.Tensor | None = None
-                           ) -> AlbedoFit:
+                           radiance: torch.Tensor, variance: torch.Tensor | None = None,
+                           view: torch.Tensor | None = None) -> AlbedoFit:
     """Lambertian albedo under known distant lights: WLS of ``B = (a/π) E max(n·ωi, 0)``.
 
     Pixels facing away from their light (``n·ωi <= 0``) carry no information about ``a`` and
-    are left out.
+    are left out. The model-free check (issue 12): the two halves of the lit samples
+    (alternate views, :func:`~brdfcap.fit.solve.split_halves`) give ``a_A``, ``a_B``; where
+    ``(a_A − a_B)² / (σ_A² + σ_B²)`` exceeds the
+    :data:`~brdfcap.fit.conditioning.REPRODUCIBILITY_LEVEL` quantile of ``χ²(1)`` the error is
+    widened by its square root (the Birge ratio; ``reproducibility``).
     """
     b = radiance.to(torch.float64)
     f = (light_radiance.to(torch.float64) / math.pi
@@ -204,9 +218,28 @@ def fit_albedo_directional(normals: torch.Tensor, wi: torch.Tensor, light_radian
         raise FitError("fewer than 2 lit samples: no pixel faces its light")
     b, f = b[lit], f[lit]
     w, src = noise_weights(b, None if variance is None else variance.to(torch.float64)[lit])
-    sw = (w * f * f).sum(0)
-    a = (w * f * b).sum(0) / sw
-    chi2 = (w * (b - a * f) ** 2).sum(0) / max(b.shape[0] - 1, 1)
-    sigma2 = chi2.clamp_min(1.0) if variance is not None else chi2
-    return AlbedoFit(albedo=a, stderr=torch.sqrt(sigma2 / sw), chi2_reduced=chi2,
-                     noise_source=src, n_samples=int(b.shape[0]))
+
+    def solve(b_, f_, w_):
+        sw_ = (w_ * f_ * f_).sum(0)
+        a_ = (w_ * f_ * b_).sum(0) / sw_
+        chi2_ = (w_ * (b_ - a_ * f_) ** 2).sum(0) / max(b_.shape[0] - 1, 1)
+        sigma2 = chi2_.clamp_min(1.0) if variance is not None else chi2_
+        return a_, torch.sqrt(sigma2 / sw_), chi2_
+
+    a, se, chi2 = solve(b, f, w)
+    rep = None
+    split = split_halves(b.shape[0], None if view is None else view[lit.to(view.device)])
+    halves = [split.to(b.device) == h for h in (0, 1)]
+    if all(int(m.sum()) >= 8 for m in halves):
+        (a0, s0, _), (a1, s1, _) = (solve(b[m], f[m], w[m]) for m in halves)
+        z2 = (a0 - a1) ** 2 / (s0 ** 2 + s1 ** 2).clamp_min(1e-300)
+        lim = float(2.0 * gammaincinv(0.5, REPRODUCIBILITY_LEVEL))
+        wide = torch.where(z2 > lim, z2.sqrt(), torch.ones_like(z2))
+        se = se * wide
+        rep = {"halves": "alternate views" if view is not None and
+               torch.unique(view[lit.to(view.device)]).numel() >= 2 else
+               "alternate blocks of samples",
+               "chi2": z2.tolist(), "limit": lim, "reproducible": (z2 <= lim).tolist(),
+               "widened_by": wide.tolist()}
+    return AlbedoFit(albedo=a, stderr=se, chi2_reduced=chi2, noise_source=src,
+                     n_samples=int(b.shape[0]), reproducibility=rep)

@@ -57,14 +57,16 @@ def lambertian_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
 def lambertian_albedo(samples, known: Known, opts: FitOptions) -> FitResult:
     """Lambertian albedo per channel under the capture's distant lights."""
     fit = fit_albedo_directional(samples.normal, samples.wi, samples.light_radiance,
-                                 samples.radiance, samples.variance)
+                                 samples.radiance, samples.variance,
+                                 view=getattr(samples, "view", None))
     pred = lambertian_radiance_directional(samples.normal, samples.wi, samples.light_radiance,
                                            fit.albedo.to(samples.normal.device))
     record = {"brdf": {"model": "lambertian",
                        "parameters": {"albedo": fit.albedo.tolist(),
                                       "albedo_stderr": fit.stderr.tolist(),
                                       "chi2_reduced": fit.chi2_reduced.tolist(),
-                                      "noise_source": fit.noise_source}}}
+                                      "noise_source": fit.noise_source},
+                       "reproducibility": fit.reproducibility}}
     est = [Estimate("albedo", fit.albedo, fit.stderr, "channel")]
     return FitResult("auto", est, pred, record, albedo=fit)
 

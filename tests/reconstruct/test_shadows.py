@@ -68,7 +68,14 @@ def test_shadowed_pixels_excluded_and_fit_unbiased(bunny_capture):
     biased = fit_albedo_directional(s_all.normal, s_all.wi, s_all.light_radiance,
                                     s_all.radiance, s_all.variance)
     assert (biased.albedo < truth * 0.98).all(), f"shadow-ignoring fit: {biased.albedo}"
-    assert ((truth - biased.albedo) > 5 * biased.stderr).all()  # far beyond its error bar
+    # far beyond its error bar as fitted; the split-half check (blocks of samples: this
+    # capture's shadows differ between them) sees the inconsistency and widens the error
+    # 4-6x (measured), so the biased value sits 2.8-2.9 errors from the truth (was > 5)
+    rep = biased.reproducibility
+    assert not any(rep["reproducible"]) and min(rep["widened_by"]) > 3, rep
+    raw = biased.stderr / torch.tensor(rep["widened_by"], dtype=torch.float64)
+    assert ((truth - biased.albedo) > 5 * raw).all()
+    assert ((truth - biased.albedo) < 4 * biased.stderr).all()
 
 
 def test_convex_mesh_pays_for_no_shadow_rays(tmp_path):
