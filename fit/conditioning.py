@@ -54,7 +54,7 @@ __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "weak_prior_variance", "band_prior_weakening", "MEASURED_BAND_GAMMA",
            "hidden_source", "HIDDEN_SOURCE_LMAX", "ZERO_BAND_LIMIT", "band_data_only_covariance",
            "zero_band_bound", "band_statistics_bayes", "model_adequacy", "residual_adequacy",
-           "VERDICT_NOT_WIDENED",
+           "VERDICT_NOT_WIDENED", "VERDICT_HALVES",
            "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
@@ -1209,6 +1209,11 @@ def model_adequacy(sol: LinearSolution, b: torch.Tensor, w: torch.Tensor, *, noi
 #: The verdict of a fit the model does not explain whose errors are not widened for it.
 VERDICT_NOT_WIDENED = ("the model does not explain the data (see likely_causes); this "
                        "problem's errors are not widened for it: read them as lower bounds")
+#: The verdict of a fit the model does not explain whose errors the split halves' disagreement
+#: widened (they are no longer the lower bounds of :data:`VERDICT_NOT_WIDENED`).
+VERDICT_HALVES = ("the model does not explain the data (see likely_causes); its errors are "
+                  "widened by the disagreement of two halves of the samples: a measured lower "
+                  "bound on what the model's error adds")
 
 
 def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tensor | None, *,

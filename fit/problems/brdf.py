@@ -19,7 +19,12 @@ from brdfcap.core.errors import FitError
 
 from ..brdf import as_brdf_model, get_brdf_model, make_brdf
 from ..brdf_models import diffuse_filter, render_directional
-from ..conditioning import REPRODUCIBILITY_LEVEL, VERDICT_NOT_WIDENED, residual_adequacy
+from ..conditioning import (
+    REPRODUCIBILITY_LEVEL,
+    VERDICT_HALVES,
+    VERDICT_NOT_WIDENED,
+    residual_adequacy,
+)
 from ..inverse_brdf import fit_brdf_sh, horizon_lines
 from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric_models
 from ..records import conditioning_json
@@ -252,13 +257,6 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     return FitResult("brdf", _parametric_estimates(par) + [filter_est], par.prediction, rec,
                      summary=summ, warnings=warns, bands={"brdf": fit.bands}, restart=restart,
                      finalize=finalize)
-
-
-#: The verdict of a parametric fit the model does not explain whose errors the split halves'
-#: disagreement widened (they are no longer the lower bounds of :data:`VERDICT_NOT_WIDENED`).
-VERDICT_HALVES = ("the model does not explain the data (see likely_causes); its errors are "
-                  "widened by the disagreement of two halves of the samples: a measured lower "
-                  "bound on what the model's error adds")
 
 
 def _widen(par, factor: float, why: str | None = None) -> None:

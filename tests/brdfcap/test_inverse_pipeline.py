@@ -165,6 +165,22 @@ def test_problem_lighting_method_tikhonov(captures, tmp_path):
     assert "--method bayes" in res.output and len(res.output.strip().splitlines()) == 1
 
 
+def test_auto_on_a_glossy_directional_capture_says_the_halves_disagree(captures, tmp_path):
+    """Problem ``auto`` on distant lights fits a Lambertian albedo; on this Phong capture that
+    model is wrong, the two halves (alternate views) give albedos far apart (measured chi2 115
+    > 10.8), the errors carry that disagreement (widened ~11x) and the verdict says so,
+    instead of calling its errors lower bounds.
+    """
+    r = _run(captures["dir"], tmp_path / "o")
+    rep = r["brdf"]["reproducibility"]
+    assert rep["halves"] == "alternate views" and not any(rep["reproducible"])
+    se = r["brdf"]["parameters"]["albedo_stderr"]
+    assert all(w > 3 for w in rep["widened_by"]) and all(e > 0.01 for e in se)
+    ad = r["adequacy"]
+    assert not ad["adequate"] and "halves of the samples" in ad["verdict"]
+    assert "lower bounds" not in ad["verdict"]
+
+
 def test_lmax_auto_reports_the_band_the_data_determine(captures, tmp_path):
     """``--lmax auto`` (issue 12: "brdfcap run suggests an lmax, or --lmax auto"): problem 1
     reports up to its suggested band; a fixed --lmax that differs from it gets the suggestion
