@@ -38,18 +38,17 @@ import math
 from dataclasses import dataclass, field
 
 import torch
-from scipy.special import gammaincinv
 
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import (
     FILTER_DEFINITION,
-    REPRODUCIBILITY_LEVEL,
     band_determined,
     band_statistics,
     data_resolved,
     filter_band_rows,
+    halves_disagreement,
     noise_level,
     residual_adequacy,
 )
@@ -65,6 +64,7 @@ from .solve import (
     noise_weights,
     solve_wls,
     split_halves,
+    split_label,
 )
 
 __all__ = ["BilinearFit", "fit_bilinear", "check_products_halves", "NULL_RTOL",
@@ -728,23 +728,16 @@ def check_products_halves(fit: BilinearFit, normal, reflected, radiance, varianc
             continue
         d = ga["value"][ix] - gb["value"][ix]
         cv = ga["covariance"][ix][:, ix] + gb["covariance"][ix][:, ix]
-        cv = 0.5 * (cv + cv.T)
         if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(cv).all())):
             continue
-        z2 = float(d @ torch.linalg.lstsq(cv, d[:, None]).solution[:, 0])
-        n = int(ix.numel())
-        lim = float(2.0 * gammaincinv(0.5 * n, REPRODUCIBILITY_LEVEL))
-        wb = math.sqrt(z2 / n) if z2 > lim else 1.0
-        fac[ix] = wb
-        rows.append({"kind": kind, "l": l, "channel": c, "chi2": z2, "limit": lim, "dof": n,
-                     "reproducible": z2 <= lim, "widened_by": wb})
+        hd = halves_disagreement(d, cv)
+        fac[ix] = hd["widened_by"]
+        rows.append({"kind": kind, "l": l, "channel": c, **hd})
     gi["stderr"] = gi["stderr"] * fac
     gi["covariance"] = gi["covariance"] * fac[:, None] * fac[None, :]
     wide = [r for r in rows if not r["reproducible"]]
     gi["reproducibility"] = {
-        "halves": "alternate views" if view is not None and
-        torch.unique(view.reshape(-1)).numel() >= 2 else "alternate blocks of samples",
-        "groups": rows, "groups_widened": len(wide),
+        "halves": split_label(view), "groups": rows, "groups_widened": len(wide),
         "widened_by_max": max([r["widened_by"] for r in rows] or [1.0])}
 
 

@@ -47,7 +47,7 @@ from .solve import RATIO_LIMIT, RESOLUTION_LIMIT, LinearSolution
 
 __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "BAYES_DEFINITION", "FILTER_DEFINITION", "filter_band_status", "filter_reason",
-           "filter_band_rows", "reproducibility",
+           "filter_band_rows", "reproducibility", "halves_disagreement", "halves_in_verdict",
            "band_determined", "data_resolved", "apply_band_verdict", "PRECISION_LIMIT",
            "REPRODUCIBILITY_LEVEL", "ERROR_BOUND_LIMIT",
            "ERROR_BOUND_LEVEL", "band_error_bound", "PRIOR_WEAKENING", "PRIOR_DOMINATED_RATIO",
@@ -227,6 +227,38 @@ def band_statistics(sol: LinearSolution, reference: torch.Tensor | None = None,
     return rows, first
 
 
+def halves_disagreement(d: torch.Tensor, cov: torch.Tensor) -> dict:
+    """Compare two halves' estimates by the χ² of their difference.
+
+    ``d`` ``(n,)`` the difference, ``cov`` ``(n, n)`` its covariance (``C_A + C_B``);
+    ``χ² = dᵀ cov⁺ d`` against the :data:`REPRODUCIBILITY_LEVEL` quantile of ``χ²(n)``; above
+    it ``widened_by`` is the Birge ratio ``sqrt(χ²/n)`` (Birge 1932, Phys. Rev. 40, 207), else
+    1. Returns ``chi2``, ``limit``, ``dof``, ``reproducible``, ``widened_by``.
+    """
+    cv = 0.5 * (cov + cov.T)
+    z2 = float(d @ torch.linalg.lstsq(cv, d[:, None]).solution[:, 0])
+    n = int(d.numel())
+    lim = _chi2_quantile(REPRODUCIBILITY_LEVEL, n)
+    return {"chi2": z2, "limit": lim, "dof": n, "reproducible": z2 <= lim,
+            "widened_by": math.sqrt(z2 / n) if z2 > lim else 1.0}
+
+
+def halves_in_verdict(adequacy: dict, cause: str) -> dict:
+    """Say in an adequacy verdict that the errors carry the split halves' disagreement.
+
+    ``cause`` joins ``likely_causes``; the verdict becomes :data:`VERDICT_HALVES`, or, when
+    the residual itself showed no misfit, says that only the halves disagree. In place;
+    returns ``adequacy``.
+    """
+    was = bool(adequacy["adequate"])
+    adequacy["adequate"] = False
+    adequacy["likely_causes"] = list(adequacy.get("likely_causes") or []) + [cause]
+    adequacy["verdict"] = VERDICT_HALVES if not was else (
+        "the residual shows no misfit, but two halves of the samples disagree beyond their "
+        "errors (see likely_causes): the errors are widened by that disagreement")
+    return adequacy
+
+
 def reproducibility(sol: LinearSolution, sel: torch.Tensor, use: torch.Tensor,
                     resolved: torch.Tensor) -> dict:
     """Judge the split halves' agreement on one band, as :func:`band_statistics_bayes` does.
@@ -256,15 +288,11 @@ def reproducibility(sol: LinearSolution, sel: torch.Tensor, use: torch.Tensor,
             continue
         if sdet is not None and not bool(sdet[:, keep, c].all()):
             continue  # a half does not span the band: nothing to compare
-        d = sx[0, keep, c] - sx[1, keep, c]
         ix = (keep[:, None], keep[None, :])
-        cv = scov[0, c][ix] + scov[1, c][ix]
-        cv = 0.5 * (cv + cv.T)
-        z2 = float(d @ torch.linalg.lstsq(cv, d[:, None]).solution[:, 0])
-        nl = int(keep.numel())
-        lim = _chi2_quantile(REPRODUCIBILITY_LEVEL, nl)
-        if z2 > lim:
-            infl[c] = max(z2 / nl, 1.0)
+        hd = halves_disagreement(sx[0, keep, c] - sx[1, keep, c],
+                                 scov[0, c][ix] + scov[1, c][ix])
+        z2, lim, nl = hd["chi2"], hd["limit"], hd["dof"]
+        infl[c] = hd["widened_by"] ** 2
         if z2 / lim > worst:
             worst, out["chi2"], lim_w, dof_w = z2 / lim, z2, lim, nl
         out["checked"] = True

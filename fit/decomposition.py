@@ -64,7 +64,7 @@ DESIGN_TEXT = {
 }
 #: Microfacet models the decomposition takes (``"rh"``: Beckmann only, its filter is Beckmann's).
 MODELS = ("microfacet", "beckmann", "ggx")
-#: Samples evaluated at once when the fitted radiance is rendered (rows of ``(n, C, K + J)``).
+#: Samples rendered at once by :func:`exact_decomposition` (rows of ``(n, C, K)``).
 PREDICT_CHUNK = 65536
 
 
@@ -296,10 +296,12 @@ def fit_decomposed_lighting(normal: torch.Tensor, reflected: torch.Tensor,
     sol = solve_wls(rows_of, b, w, band, rule=rule, noise_known=var is not None,
                     band_penalty=pen, noise_source=src,
                     split=split_halves(n.shape[0], view))  # the model-free check
-    x = sol.coefficients
-    pred = torch.cat([torch.einsum("nck,kc->nc", rows_of(s, min(s + PREDICT_CHUNK, n.shape[0])),
-                                   x) for s in range(0, n.shape[0], PREDICT_CHUNK)])
-    adequacy = residual_adequacy(b, pred, var, view=view, n_params=k + nj, widen=True)
+    slow, power = sol.coefficients[:k], sol.coefficients[k:]
+    # the fitted radiance by component: their sum is the prediction the residual is judged on
+    parts = exact_decomposition(material, n, r, slow, dirs, power) if design == "exact" else \
+        microfacet_decomposition(n, r, slow, dirs, power, material.kd, material.f0,
+                                 float(material.sigma))
+    adequacy = residual_adequacy(b, parts.total, var, view=view, n_params=k + nj, widen=True)
     wf = float(adequacy["widen"])
     if wf > 1.0:  # a structured residual: the AR(1) factor on every error (module doc)
         sol.stderr = sol.stderr * wf
@@ -308,10 +310,6 @@ def fit_decomposed_lighting(normal: torch.Tensor, reflected: torch.Tensor,
             sol.covariance = sol.covariance * wf * wf
     rows, ill = band_statistics(sol)
     apply_band_verdict(sol, rows)
-    slow, power = x[:k], x[k:]
-    parts = exact_decomposition(material, n, r, slow, dirs, power) if design == "exact" else \
-        microfacet_decomposition(n, r, slow, dirs, power, material.kd, material.f0,
-                                 float(material.sigma))
     return DecomposedLighting(slow=slow, power=power, solution=sol, bands=rows,
                               ill_conditioned_from_l=ill, parts=parts, adequacy=adequacy,
                               design=design)

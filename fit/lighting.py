@@ -14,17 +14,17 @@ import math
 from dataclasses import dataclass, field
 
 import torch
-from scipy.special import gammaincinv
 
 from brdfcap.core.errors import FitError
 
-from .conditioning import REL_STDERR_LIMIT, REPRODUCIBILITY_LEVEL
+from .conditioning import REL_STDERR_LIMIT, halves_disagreement
 from .solve import (
     EIG_RTOL,
     RESOLUTION_LIMIT,
     VARIANCE_FLOOR_REL,
     noise_weights,
     split_halves,
+    split_label,
 )
 
 __all__ = ["SHFit", "AlbedoFit", "fit_lighting_lambertian", "fit_albedo_directional",
@@ -232,14 +232,12 @@ def fit_albedo_directional(normals: torch.Tensor, wi: torch.Tensor, light_radian
     halves = [split.to(b.device) == h for h in (0, 1)]
     if all(int(m.sum()) >= 8 for m in halves):
         (a0, s0, _), (a1, s1, _) = (solve(b[m], f[m], w[m]) for m in halves)
-        z2 = (a0 - a1) ** 2 / (s0 ** 2 + s1 ** 2).clamp_min(1e-300)
-        lim = float(2.0 * gammaincinv(0.5, REPRODUCIBILITY_LEVEL))
-        wide = torch.where(z2 > lim, z2.sqrt(), torch.ones_like(z2))
-        se = se * wide
-        rep = {"halves": "alternate views" if view is not None and
-               torch.unique(view[lit.to(view.device)]).numel() >= 2 else
-               "alternate blocks of samples",
-               "chi2": z2.tolist(), "limit": lim, "reproducible": (z2 <= lim).tolist(),
-               "widened_by": wide.tolist()}
+        hd = [halves_disagreement((a0 - a1)[c:c + 1], (s0 ** 2 + s1 ** 2)[c:c + 1, None])
+              for c in range(a.shape[0])]  # one parameter per channel
+        se = se * torch.tensor([h["widened_by"] for h in hd], dtype=se.dtype)
+        rep = {"halves": split_label(None if view is None else view[lit.to(view.device)]),
+               "chi2": [h["chi2"] for h in hd], "limit": hd[0]["limit"],
+               "reproducible": [h["reproducible"] for h in hd],
+               "widened_by": [h["widened_by"] for h in hd]}
     return AlbedoFit(albedo=a, stderr=se, chi2_reduced=chi2, noise_source=src,
                      n_samples=int(b.shape[0]), reproducibility=rep)

@@ -63,7 +63,8 @@ __all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restric
            "NO_NOISE_MODEL", "drop_nonfinite_directions",
            "default_band_penalty",
            "REGULARIZATION_RULES", "EIG_RTOL",
-           "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID", "split_halves", "SPLIT_BLOCKS"]
+           "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID", "split_halves", "SPLIT_BLOCKS",
+           "split_label"]
 
 #: Eigenvalues of the scaled normal matrix below ``EIG_RTOL × max`` are treated as exactly zero
 #: (singular values below 1e-6 of the largest: float64 normal equations keep no digit of them).
@@ -462,6 +463,13 @@ def split_halves(n: int, view: torch.Tensor | None = None,
             rank = torch.searchsorted(vs, v.clamp(min=int(vs.min()), max=int(vs.max())))
             return rank % 2
     return (torch.arange(n) * SPLIT_BLOCKS // max(n, 1)) % 2
+
+
+def split_label(view: torch.Tensor | None = None) -> str:
+    """How :func:`split_halves` cuts these samples, in words (``results.json`` ``halves``)."""
+    if view is not None and torch.unique(view.reshape(-1)).numel() >= 2:
+        return "alternate views"
+    return "alternate blocks of samples"
 
 
 # ---------------------------------------------------------------------------------------------

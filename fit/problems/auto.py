@@ -17,7 +17,7 @@ import torch
 from brdfcap.core.errors import FitError
 
 from ..brdf_models import BRDFSpec
-from ..conditioning import VERDICT_HALVES, residual_adequacy
+from ..conditioning import halves_in_verdict, residual_adequacy
 from ..lighting import fit_albedo_directional, fit_lighting_lambertian
 from ..records import conditioning_json, lighting_json
 from ..render import lambertian_radiance_directional, lambertian_radiance_sh
@@ -75,13 +75,10 @@ def lambertian_albedo(samples, known: Known, opts: FitOptions) -> FitResult:
         ad = residual_adequacy(samples.radiance, pred, samples.variance if noise else None,
                                view=getattr(samples, "view", None),
                                n_params=int(fit.albedo.numel()))
-        ad["adequate"] = False
-        ad["likely_causes"] = list(ad.get("likely_causes") or []) + [
+        record["adequacy"] = halves_in_verdict(ad, (
             f"the two halves of the samples ({rep['halves']}) give albedos that differ beyond "
             f"their errors (chi2 up to {max(rep['chi2']):.3g} > {rep['limit']:.3g}): the "
-            f"errors are widened up to {max(rep['widened_by']):.2g}x (Birge ratio)"]
-        ad["verdict"] = VERDICT_HALVES
-        record["adequacy"] = ad
+            f"errors are widened up to {max(rep['widened_by']):.2g}x (Birge ratio)"))
     est = [Estimate("albedo", fit.albedo, fit.stderr, "channel")]
     return FitResult("auto", est, pred, record, albedo=fit)
 

@@ -68,7 +68,7 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
         # the model-free check of the products on the final solve (fit.bilinear)
         check_products_halves(res, samples.normal, samples.reflected, samples.radiance,
                               samples.variance, view)
-        out.record["gauge_invariant"] = res.to_results()["gauge_invariant"]
+        out.record["gauge_invariant"] = res._gauge_json()
         out.estimates = est[:3] + gauge_estimates(res.gauge_invariant)
 
     return FitResult("both", est, res.prediction, res.to_results(), summary=res.summary(),

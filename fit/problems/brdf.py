@@ -13,16 +13,15 @@ from __future__ import annotations
 import math
 
 import torch
-from scipy.special import gammaincinv
 
 from brdfcap.core.errors import FitError
 
 from ..brdf import as_brdf_model, get_brdf_model, make_brdf
 from ..brdf_models import diffuse_filter, render_directional
 from ..conditioning import (
-    REPRODUCIBILITY_LEVEL,
-    VERDICT_HALVES,
     VERDICT_NOT_WIDENED,
+    halves_disagreement,
+    halves_in_verdict,
     residual_adequacy,
 )
 from ..inverse_brdf import fit_brdf_sh, horizon_lines
@@ -30,7 +29,7 @@ from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric
 from ..records import conditioning_json
 from ..result import Estimate, FitResult
 from ..sh import band_of_index, real_sh
-from ..solve import split_halves
+from ..solve import split_halves, split_label
 from .base import FitOptions, Known, Problem, need_known_lighting, register_problem
 
 __all__ = ["problem_brdf", "fmt"]
@@ -309,14 +308,8 @@ def _halves_check(samples, par, model: str, refit) -> dict | None:
     cov = fits[0].covariance + fits[1].covariance
     if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(cov).all())):
         return None
-    cov = 0.5 * (cov + cov.T)
-    z2 = float(d @ torch.linalg.lstsq(cov, d[:, None]).solution[:, 0])
-    lim = float(2.0 * gammaincinv(0.5 * p, REPRODUCIBILITY_LEVEL))
-    halves = "alternate views" if view is not None and \
-        torch.unique(view.reshape(-1)).numel() >= 2 else "alternate blocks of samples"
     sd = cov.diagonal().clamp_min(1e-300).sqrt()
-    return {"halves": halves, "chi2": z2, "limit": lim, "dof": p, "reproducible": z2 <= lim,
-            "widened_by": math.sqrt(z2 / p) if z2 > lim else 1.0,
+    return {"halves": split_label(view), **halves_disagreement(d, cov),
             "difference_z": {nm: float(x) for nm, x in zip(par.names, d / sd)}}
 
 
@@ -342,17 +335,11 @@ def _apply_halves(samples, par, halves: dict | None, adequacy: dict | None) -> d
         adequacy = residual_adequacy(samples.radiance, par.prediction, var,
                                      view=getattr(samples, "view", None),
                                      n_params=len(par.names))
-    was = bool(adequacy["adequate"])
-    adequacy["adequate"] = False
-    adequacy["likely_causes"] = list(adequacy.get("likely_causes") or []) + [
+    return halves_in_verdict(adequacy, (
         f"the two halves of the samples ({halves['halves']}) give parameters that differ "
         f"beyond their errors (chi2 {halves['chi2']:.3g} > {halves['limit']:.3g}, "
         f"{halves['dof']} parameters): every error is widened {halves['widened_by']:.2g}x "
-        f"(Birge ratio)"]
-    adequacy["verdict"] = VERDICT_HALVES if not was else (
-        "the residual shows no misfit, but two halves of the samples disagree beyond their "
-        "errors (see likely_causes): the errors are widened by that disagreement")
-    return adequacy
+        f"(Birge ratio)"))
 
 
 def _beyond_truncation(par, model: str) -> str | None:
