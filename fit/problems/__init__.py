@@ -13,7 +13,6 @@ from dataclasses import replace
 
 import torch
 
-from ..conditioning import residual_adequacy
 from ..inverse_lighting import limits_note, near_limits
 from ..records import FIT_SCHEMA, conditioning_json, lighting_json
 from ..result import Estimate, FitResult
@@ -29,6 +28,7 @@ from .base import (
     check_lmax,
     get_problem,
     register_problem,
+    residual_verdict,
 )
 
 __all__ = ["PROBLEMS", "FIT_SCHEMA", "Problem", "FitOptions", "Known", "FitResult", "Estimate",
@@ -126,20 +126,12 @@ def _state_adequacy(res: FitResult, samples, known: Known) -> None:
     """Give every fit an adequacy verdict (``record["adequacy"]``).
 
     Problems without their own (``both``, ``aldrian-smith``, …) are judged from their
-    prediction's residual (:func:`..conditioning.residual_adequacy`: χ² with a noise model, the
-    residual's structure always).
+    prediction's residual (:func:`.base.residual_verdict`).
     """
     rec = res.record
     if any(isinstance(b, dict) and isinstance(b.get("adequacy"), dict)
-           for b in (rec, rec.get("lighting"), rec.get("conditioning"))) or \
-            res.prediction is None or getattr(samples, "radiance", None) is None:
+           for b in (rec, rec.get("lighting"), rec.get("conditioning"))):
         return
-    b = samples.radiance
-    pred = res.prediction.to(b.device)
-    if pred.shape != b.shape:
-        return
-    noise = known.noise is not None and getattr(known.noise, "is_known", False)
-    var = getattr(samples, "variance", None) if noise else None
-    n_params = sum(int(e.value.numel()) for e in res.estimates if not e.known)
-    rec["adequacy"] = residual_adequacy(b, pred, var, view=getattr(samples, "view", None),
-                                        n_params=n_params)
+    verdict = residual_verdict(res, samples, known)
+    if verdict is not None:
+        rec["adequacy"] = verdict

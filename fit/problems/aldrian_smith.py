@@ -12,9 +12,17 @@ import torch
 
 from brdfcap.core.errors import FitError
 
-from ..aldrian_smith import ColourTransform, fit_aldrian_smith_samples
+from ..aldrian_smith import ColourTransform, apply_halves, check_halves, fit_aldrian_smith_samples
+from ..conditioning import halves_in_verdict
 from ..result import Estimate, FitResult
-from .base import FitOptions, Known, Problem, need_environment, register_problem
+from .base import (
+    FitOptions,
+    Known,
+    Problem,
+    need_environment,
+    register_problem,
+    residual_verdict,
+)
 
 __all__ = ["problem_aldrian_smith"]
 
@@ -55,23 +63,58 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
     res = fit_aldrian_smith_samples(samples, lmax=opts.lmax, colour=colour, texture=texture,
                                     rule=opts.rule, smoothness=smooth)
     note = "posterior standard error (Aldrian & Smith 2011 model with its priors)"
-    est = [Estimate("lighting", res.lighting_radiance, res.lighting_stderr, "sh", note=note),
-           Estimate("albedo_mean", res.albedo.mean(0), None, "channel",
-                    note="mean of the per-sample albedo: no standard error"),
-           Estimate("specular_kappa", res.specular_low, res.specular_low_stderr, "band",
-                    determined=res.specular_low_determined,
-                    note=note if res.specular_low_determined is None
-                    or bool(res.specular_low_determined.all()) else
-                    note + "; kappa_0 not determined with a free albedo (set to 0, the albedo "
-                    "carries the specular DC)")]
+
+    def estimates():
+        return [Estimate("lighting", res.lighting_radiance, res.lighting_stderr, "sh", note=note),
+                Estimate("albedo_mean", res.albedo.mean(0), None, "channel",
+                         note="mean of the per-sample albedo: no standard error"),
+                Estimate("specular_kappa", res.specular_low, res.specular_low_stderr, "band",
+                         determined=res.specular_low_determined,
+                         note=note if res.specular_low_determined is None
+                         or bool(res.specular_low_determined.all()) else
+                         note + "; kappa_0 not determined with a free albedo (set to 0, the "
+                         "albedo carries the specular DC)")]
+
     if smooth != "evidence":
         res.smoothness_chosen("evidence, chosen on the first solve and kept for the solve with "
                               "the noise variance at its prediction")
     # the smoothness is None with a texture model (no free albedo)
     restart = ({} if res.priors.get("smoothness") is None
                else {"albedo_smoothness": res.priors["smoothness"]})
-    return FitResult("aldrian-smith", est, res.prediction, res.to_results(),
-                     summary=res.summary(), ambiguities=list(res.ambiguities), restart=restart)
+
+    def finalize(out: FitResult) -> None:
+        # the model-free check on the final solve (issue 12): two halves of the fitted
+        # samples refitted; where they disagree every error is widened and the verdict says so
+        view = getattr(samples, "view", None)
+        if view is not None and res._index is not None:
+            view = view[res._index.to(view.device)]
+        halves = check_halves(res, view)
+        apply_halves(res, halves)
+        out.estimates = estimates()
+        out.record.update(res.to_results())
+        out.summary[0] = res.summary()[0]
+        if halves.get("checked") and not halves["reproducible"]:
+            verdict = residual_verdict(out, samples, known)
+            if verdict is not None:
+                out.record["adequacy"] = halves_in_verdict(verdict, _halves_cause(halves))
+
+    return FitResult("aldrian-smith", estimates(), res.prediction, res.to_results(),
+                     summary=res.summary(), ambiguities=list(res.ambiguities), restart=restart,
+                     finalize=finalize)
+
+def _halves_cause(halves: dict) -> str:
+    """Name a failed split-half check (:func:`check_halves`) as an adequacy verdict's cause."""
+    w = f"every error is widened {halves['widened_by']:.2g}x (Birge ratio)"
+    if halves["chi2"] > halves["limit"]:
+        return (f"the two halves of the samples ({halves['halves']}) give lighting, kappa and "
+                f"texture coefficients that differ beyond their errors (chi2 "
+                f"{halves['chi2']:.3g} > {halves['limit']:.3g}, {halves['dof']} "
+                f"combinations): {w}")
+    p = halves["pooled_vs_halves"]
+    return (f"the two halves of the samples ({halves['halves']}) agree, but the fit of all of "
+            f"them is not their combination (chi2 {p['chi2']:.3g} > {p['limit']:.3g}): each "
+            "half absorbs in its free albedo something the pooled fit must explain with the "
+            f"shared parameters (e.g. a gain or exposure that differs between views); {w}")
 
 
 register_problem(Problem(

@@ -23,13 +23,14 @@ import torch
 from brdfcap.core.errors import FitError
 
 from ..brdf_models import BRDF_MODELS, BRDFSpec
+from ..conditioning import residual_adequacy
 from ..result import Estimate, FitResult
 
 __all__ = ["FitOptions", "Known", "Problem", "PROBLEMS", "register_problem", "get_problem",
            "check_lmax",
            "brdf_from_material", "need_environment", "need_reflectance", "need_known_lighting",
            "lighting_estimate",
-           "material_estimates"]
+           "material_estimates", "residual_verdict"]
 
 
 @dataclass(frozen=True)
@@ -274,3 +275,22 @@ def material_estimates(spec: BRDFSpec | None, params: dict) -> list[Estimate]:
             out.append(Estimate(name, torch.tensor(val, dtype=torch.float64), None, "channel",
                                 known=True))
     return out
+
+
+def residual_verdict(res: FitResult, samples, known: Known) -> dict | None:
+    """Judge a fit from its prediction's residual (``None`` without one to judge).
+
+    :func:`..conditioning.residual_adequacy`: χ² where the capture has a noise model, the
+    residual's structure always; for problems without an adequacy verdict of their own.
+    """
+    b = getattr(samples, "radiance", None)
+    if res.prediction is None or b is None:
+        return None
+    pred = res.prediction.to(b.device)
+    if pred.shape != b.shape:
+        return None
+    noise = known.noise is not None and getattr(known.noise, "is_known", False)
+    var = getattr(samples, "variance", None) if noise else None
+    n_params = sum(int(e.value.numel()) for e in res.estimates if not e.known)
+    return residual_adequacy(b, pred, var, view=getattr(samples, "view", None),
+                             n_params=n_params)
