@@ -66,14 +66,15 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, render_directional
+from .conditioning import halves_disagreement
 from .filters import lambda_l, phong_filter
 from .inverse_brdf import ALIAS_CORR, aliased_pairs
 from .sh import legendre_normalized
-from .solve import solve_wls
+from .solve import solve_wls, split_halves, split_label
 
 __all__ = ["phong_radiance", "PhongFit", "fit_lambert_phong", "BrdfSH", "measure_brdf_sh",
            "phong_rho_hat", "BrdfMeasurement", "measure_brdf", "DEFAULT_BRDF_LMAX",
-           "ALIAS_SHIFT_SIGMA"]
+           "ALIAS_SHIFT_SIGMA", "check_halves", "apply_halves"]
 
 #: Aliased pairs (correlation below ``-ALIAS_CORR``) are reported only where fitting two more
 #: bands moves a band of the pair by more than this many standard errors: with one-sided
@@ -149,6 +150,8 @@ class PhongFit:
     used: np.ndarray  # (N,) bool, sample entered the fit
     noise_source: str = ""
     s_profile: list = field(default_factory=list)  # [(s, rss)] of the 1-D search
+    #: ``(C+1, C+1)`` covariance of ``(k_s, s)`` (``None`` when the information is singular)
+    covariance: np.ndarray | None = None
 
     @property
     def kd_median(self) -> np.ndarray:
@@ -361,7 +364,7 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
             cov = inv * sigma2
         se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
-        se = np.full(nch + 1, math.inf)
+        se, cov = np.full(nch + 1, math.inf), None
     if variance is None:  # per-pixel sandwich for kd (conditional on ks, s)
         wfr = wf * res
         num = per_pixel(wfr * wfr)
@@ -378,7 +381,7 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
                     pixel_samples=np.bincount(pid, minlength=npix), ks=ks,
                     ks_stderr=se[:nch], s=s, s_stderr=float(se[nch]), chi2_reduced=chi2,
                     residual_rel=rel, n_samples=nu, prediction=pred, used=used,
-                    noise_source=src, s_profile=profile)
+                    noise_source=src, s_profile=profile, covariance=cov)
 
 
 def phong_rho_hat(ks, s: float, lmax: int) -> np.ndarray:
@@ -410,6 +413,7 @@ class BrdfSH:
     ill_conditioned_from_l: int | None
     x_range: tuple[float, float]
     ambiguities: list = field(default_factory=list)  # odd/even aliasing (issue 12)
+    resolution: np.ndarray | None = None  # (L+1, C) model-resolution diagonal
 
 
 def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> BrdfSH:
@@ -502,23 +506,36 @@ def measure_brdf_sh(x, y, w, lmax: int = DEFAULT_BRDF_LMAX, analytic=None) -> Br
                           f"-{ALIAS_CORR:g}, so only their combination is determined; both are "
                           f"flagged not determined"})
         se[sorted(aliased)] = math.inf
+    bands, first = _sh_bands(rho, se, res, aliased)
+    an = np.zeros_like(rho) if analytic is None else np.asarray(analytic, np.float64)
+    return BrdfSH(lmax=lmax, rho_hat=rho, stderr=se, analytic=an, bands=bands,
+                  ill_conditioned_from_l=first,
+                  x_range=(float(x.min(initial=1.0)), float(x.max(initial=-1.0))),
+                  ambiguities=ambiguities, resolution=res)
+
+
+def _sh_bands(rho: np.ndarray, se: np.ndarray, res: np.ndarray, aliased: set,
+              widened: np.ndarray | None = None) -> tuple[list[dict], int | None]:
+    """Band rows of :func:`measure_brdf_sh` and the first ill-conditioned band.
+
+    ``widened``: ``(L+1,)`` factor each band's errors carry from the split-half check
+    (:func:`check_halves`; rows then say so).
+    """
     bands, first = [], None
     floor = 1e-6 * np.abs(rho[0]).max(initial=0.0)
-    for l in range(lmax + 1):
+    for l in range(rho.shape[0]):
         resolved = bool((res[l] > 0.5).all())
         snr = np.abs(rho[l]) / np.where(np.isfinite(se[l]) & (se[l] > 0), se[l], np.inf)
         ill = (not resolved) or bool((se[l] > np.maximum(np.abs(rho[l]), floor)).any())
         row = {"l": l, "resolution": float(res[l].min()), "median_snr": float(np.median(snr)),
                "rel_stderr": float(np.max(se[l] / max(np.abs(rho[0]).max(initial=0), 1e-300))),
                "ill_conditioned": ill, "aliased": l in aliased}
+        if widened is not None:
+            row["widened_by"] = float(widened[l])
         if ill and first is None:
             first = l
         bands.append(row)
-    an = np.zeros_like(rho) if analytic is None else np.asarray(analytic, np.float64)
-    return BrdfSH(lmax=lmax, rho_hat=rho, stderr=se, analytic=an, bands=bands,
-                  ill_conditioned_from_l=first,
-                  x_range=(float(x.min(initial=1.0)), float(x.max(initial=-1.0))),
-                  ambiguities=ambiguities)
+    return bands, first
 
 
 @dataclass
@@ -533,6 +550,8 @@ class BrdfMeasurement:
     slice_y: np.ndarray  # (M, C) measured specular B/E
     diffuse_cos: np.ndarray  # (M,) n·ωi of (subsampled) samples
     diffuse_y: np.ndarray  # (M, C) measured (B - spec) / (E kd_pixel / π)
+    #: the split-half check (:func:`check_halves`), ``None`` until run
+    reproducibility: dict | None = None
 
     def results(self) -> dict:
         """JSON-ready record for ``results.json["brdf"]``."""
@@ -563,13 +582,15 @@ class BrdfMeasurement:
                    "definition": "B_spec/E = Σ_l sqrt((2l+1)/4π) ρ̂_l P_l(r·ωi) (R&H 2001 eq. 12 "
                                  "with L_lm = E Y_lm(ωi)); band ill-conditioned when unresolved "
                                  "(resolution < 0.5), std. error > |ρ̂_l| (SNR < 1) or aliased "
-                                 "with a neighbour (one-sided support, see ambiguities)"},
+                                 "with a neighbour (one-sided support, see ambiguities); "
+                                 "errors first widened where the split halves disagree"},
+            "reproducibility": self.reproducibility,
         }
 
 
 def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
                  max_plot: int = 20000, max_sh_samples: int = 200000,
-                 seed: int = 0) -> BrdfMeasurement:
+                 seed: int = 0, s_init: float | None = None) -> BrdfMeasurement:
     """Parametric fit, albedo map and SH-domain ρ̂ from directional-light :class:`Samples`.
 
     Parameters
@@ -584,11 +605,13 @@ def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
         The SH-domain ρ̂ is measured on at most this many samples drawn at random (the design
         matrix is ``N × (lmax+1)`` float64: a full 612×512 DiLiGenT object with 96 lights has
         ~5e6 samples, 1 GB at lmax 24); costs a factor sqrt(N/max) in its standard errors.
+    s_init : float, optional
+        Start the shininess search here (:func:`fit_lambert_phong`).
     """
     if samples.wi is None or samples.light_radiance is None:
         raise FitError("BRDF measurement needs known directional lights ([[images]].light)")
     fit = fit_lambert_phong(samples.normal, samples.wo, samples.wi, samples.light_radiance,
-                            samples.radiance, samples.pixel, samples.variance)
+                            samples.radiance, samples.pixel, samples.variance, s_init=s_init)
     h, w = shape
     nch = fit.kd_pixel.shape[1]
     amap = np.full((h, w, nch), np.nan)
@@ -622,3 +645,107 @@ def measure_brdf(samples, shape: tuple[int, int], lmax: int = DEFAULT_BRDF_LMAX,
     dy = (b - spec) / np.clip(e * kd_s / math.pi, 1e-12, None)
     return BrdfMeasurement(phong=fit, sh=sh, albedo_map=amap, albedo_stderr_map=smap,
                            slice_x=x, slice_y=y, diffuse_cos=cos_i, diffuse_y=dy)
+
+
+def _subset(samples, idx: torch.Tensor):
+    """Return the rows ``idx`` of a :class:`~brdfcap.reconstruct.geometry.Samples`."""
+    from dataclasses import fields, replace
+
+    n = len(samples)
+    kw = {}
+    for f_ in fields(samples):
+        v = getattr(samples, f_.name)
+        if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == n:
+            kw[f_.name] = v[idx.to(v.device)]
+    return replace(samples, **kw)
+
+
+def check_halves(samples, meas: BrdfMeasurement, shape: tuple[int, int]) -> dict:
+    """Measure the BRDF again on two halves of the samples and compare (issue 12).
+
+    The halves alternate images (each image is one light in a photometric-stereo capture),
+    else blocks of samples (:func:`~brdfcap.fit.solve.split_halves`); each is measured by
+    :func:`measure_brdf` (its own albedo map, the lobe searched from the full fit's ``s``).
+    Compared, each by :func:`~brdfcap.fit.conditioning.halves_disagreement` (χ² against its
+    99.9% quantile):
+
+    * the global lobe ``(k_s, s)``: the halves against each other, and the full fit against
+      their precision-weighted combination (the per-pixel albedos are nuisance parameters, as
+      problem 4's free albedo: a half can absorb in them what the pooled fit cannot);
+    * ``ρ̂_l`` per band over the channels every fit resolves (aliased bands have no error and are
+      not compared).
+
+    Returns the ``reproducibility`` record (``checked`` false with a ``reason`` when a half
+    cannot be measured alone); :func:`apply_halves` widens the errors.
+    """
+    view = samples.view
+    split = split_halves(len(samples), view)
+    label = split_label(view)
+    try:
+        ha, hb = (measure_brdf(_subset(samples, torch.nonzero(split == h).reshape(-1)), shape,
+                               lmax=meas.sh.lmax, max_plot=0, s_init=meas.phong.s)
+                  for h in (0, 1))
+    except FitError as e:
+        return {"checked": False, "halves": label,
+                "reason": f"a half cannot be measured alone ({str(e).splitlines()[0]})"}
+    out: dict = {"checked": True, "halves": label,
+                 "samples": [int((split == h).sum()) for h in (0, 1)]}
+    # the global lobe
+    pf, pa, pb = meas.phong, ha.phong, hb.phong
+    lobe = None
+    if all(p.covariance is not None and np.isfinite(p.covariance).all() for p in (pf, pa, pb)):
+        th = [torch.from_numpy(np.r_[p.ks, p.s]) for p in (pf, pa, pb)]
+        cf, ca, cb = (torch.from_numpy(p.covariance) for p in (pf, pa, pb))
+        lobe = halves_disagreement(th[1] - th[2], ca + cb)
+        sd = (ca.diagonal() + cb.diagonal()).clamp_min(1e-300).sqrt()
+        names = [f"ks[{c}]" for c in range(len(pf.ks))] + ["shininess"]
+        lobe["difference_z"] = {nm: float(z) for nm, z in zip(names, (th[1] - th[2]) / sd)}
+        pa_, pb_ = (torch.linalg.pinv(0.5 * (c + c.T), hermitian=True) for c in (ca, cb))
+        comb = torch.linalg.lstsq(pa_ + pb_, (pa_ @ th[1] + pb_ @ th[2])[:, None]).solution[:, 0]
+        lobe["pooled_vs_halves"] = halves_disagreement(th[0] - comb, cf)
+        lobe["widened_by"] = max(lobe["widened_by"], lobe["pooled_vs_halves"]["widened_by"])
+        lobe["reproducible"] = lobe["widened_by"] == 1.0
+    out["lobe"] = lobe
+    # SH-domain rho_l, band by band
+    rows = []
+    for l in range(meas.sh.lmax + 1):
+        se = np.stack([m.sh.stderr[l] for m in (meas, ha, hb)])
+        ok = np.isfinite(se).all(0) & (se > 0).all(0)
+        if not ok.any():
+            rows.append(None)
+            continue
+        d = torch.from_numpy(ha.sh.rho_hat[l, ok] - hb.sh.rho_hat[l, ok])
+        hd = halves_disagreement(d, torch.diag(torch.from_numpy(se[1, ok] ** 2 + se[2, ok] ** 2)))
+        rows.append({"l": l, **hd})
+    out["rho_hat"] = rows
+    widened = [r["l"] for r in rows if r is not None and not r["reproducible"]]
+    out["rho_hat_bands_widened"] = widened
+    out["reproducible"] = (lobe is None or lobe["reproducible"]) and not widened
+    return out
+
+
+def apply_halves(meas: BrdfMeasurement, halves: dict) -> BrdfMeasurement:
+    """Keep ``halves`` in ``meas.reproducibility``; widen what disagreed by its Birge ratio.
+
+    The lobe's ``k_s``, ``s`` errors and covariance by the lobe's factor; each ``ρ̂_l`` band's
+    errors by its own, its row re-judged (``ill_conditioned``, ``widened_by``). In place.
+    """
+    meas.reproducibility = halves
+    if not halves.get("checked"):
+        return meas
+    lobe = halves.get("lobe")
+    if lobe is not None and lobe["widened_by"] > 1.0:
+        w = float(lobe["widened_by"])
+        p = meas.phong
+        p.ks_stderr = p.ks_stderr * w
+        p.s_stderr = p.s_stderr * w
+        if p.covariance is not None:
+            p.covariance = p.covariance * w * w
+    sh = meas.sh
+    wb = np.array([1.0 if r is None else float(r["widened_by"]) for r in halves["rho_hat"]])
+    sh.stderr = sh.stderr * wb[:, None]
+    aliased = {r["l"] for r in sh.bands if r.get("aliased")}
+    res = sh.resolution if sh.resolution is not None else \
+        np.array([[r["resolution"]] for r in sh.bands])
+    sh.bands, sh.ill_conditioned_from_l = _sh_bands(sh.rho_hat, sh.stderr, res, aliased, wb)
+    return meas
