@@ -152,6 +152,8 @@ class PhongFit:
     s_profile: list = field(default_factory=list)  # [(s, rss)] of the 1-D search
     #: ``(C+1, C+1)`` covariance of ``(k_s, s)`` (``None`` when the information is singular)
     covariance: np.ndarray | None = None
+    #: weighted by a noise model (else ``chi2_reduced`` is a residual variance, not a χ²)
+    noise_known: bool = False
 
     @property
     def kd_median(self) -> np.ndarray:
@@ -381,7 +383,8 @@ def fit_lambert_phong(normal, wo, wi, irradiance, radiance, pixel, variance=None
                     pixel_samples=np.bincount(pid, minlength=npix), ks=ks,
                     ks_stderr=se[:nch], s=s, s_stderr=float(se[nch]), chi2_reduced=chi2,
                     residual_rel=rel, n_samples=nu, prediction=pred, used=used,
-                    noise_source=src, s_profile=profile, covariance=cov)
+                    noise_source=src, s_profile=profile, covariance=cov,
+                    noise_known=variance is not None)
 
 
 def phong_rho_hat(ks, s: float, lmax: int) -> np.ndarray:
@@ -554,7 +557,7 @@ class BrdfMeasurement:
     reproducibility: dict | None = None
 
     def results(self) -> dict:
-        """JSON-ready record for ``results.json["brdf"]``."""
+        """JSON-ready record for ``results.json["brdf"]`` (``chi2_reduced`` null without noise)."""
         p = self.phong
         return {
             "model": "lambertian+phong",
@@ -566,7 +569,9 @@ class BrdfMeasurement:
                 "kd_median_stderr": np.median(p.kd_stderr, 0).tolist(),
                 "ks": p.ks.tolist(), "ks_stderr": p.ks_stderr.tolist(),
                 "shininess": p.s, "shininess_stderr": p.s_stderr,
-                "chi2_reduced": p.chi2_reduced, "residual_rel": p.residual_rel,
+                # uniform weights: the mean squared residual is no χ² (issue 12), not shown
+                "chi2_reduced": p.chi2_reduced if p.noise_known else None,
+                "residual_rel": p.residual_rel,
                 "n_samples": p.n_samples, "n_pixels": int(len(p.kd_pixel)),
                 "noise_source": p.noise_source,
             },

@@ -93,3 +93,19 @@ def test_the_problem_states_the_check_in_results_and_verdict():
     assert not ad["adequate"] and any("Phong lobes differ" in c for c in ad["likely_causes"])
     ok = solve_problem("brdf-map", _lights(True, 1), known, FitOptions(lmax=2))
     assert ok.record["brdf"]["reproducibility"]["lobe"]["reproducible"]
+
+
+def test_no_chi2_from_uniform_weights():
+    """Issue 12's done-when, "no report shows χ² from uniform weights": the synthetic DiLiGenT
+    report printed ``chi2_reduced 4.434e-07`` in its BRDF table (no noise model). Without
+    one the value is null and the table has no such row; with one it is a χ² and shown.
+    """
+    from brdfcap.reports.views import brdf_parameter_rows
+
+    smp = _lights(True, 0)
+    bare = measure_brdf(replace(smp, variance=None), (24, 24), lmax=24).results()
+    assert bare["parameters"]["chi2_reduced"] is None
+    assert not any("chi2" in k for k, _ in brdf_parameter_rows(bare))
+    noisy = measure_brdf(smp, (24, 24), lmax=24).results()
+    assert 0.5 < noisy["parameters"]["chi2_reduced"] < 2
+    assert any(k == "chi2_reduced" for k, _ in brdf_parameter_rows(noisy))
