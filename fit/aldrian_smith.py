@@ -59,7 +59,7 @@ from .brdf_models import diffuse_filter
 from .conditioning import halves_disagreement
 from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
-from .solve import noise_weights, split_halves, split_label
+from .solve import NO_NOISE_MODEL, noise_weights, split_halves, split_label
 
 __all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "SharedAlbedoReference",
            "estimate_colour_transform_shared_albedo", "SHARED_ALBEDO_AMBIGUITY",
@@ -589,7 +589,9 @@ class AldrianSmithFit:
                 "unobservable_bands": self.unobservable_bands,
                 "unobservable_reason": "odd bands l >= 3: the clamped-cosine filter A_l is 0 "
                 "(R&H 2001 eq. 8); not seen by a Lambertian surface, set to 0, not estimated",
-                "chi2_reduced": self.chi2_channels, "noise_source": self.noise_source,
+                # uniform weights: a residual variance, no χ² (issue 12)
+                "chi2_reduced": self.chi2_channels if self.noise_known else None,
+                "noise_source": self.noise_source,
                 "scale_fixing": self.ambiguities[0]["resolution"] if self.ambiguities else "",
                 "units": "camera units after M^-1(I - o)" + ("" if self.colour.identified else
                                                           " with M = I assumed (not identified)"),
@@ -615,7 +617,8 @@ class AldrianSmithFit:
             "specular_high": self.specular_high.tolist(),
             "specular_high_stderr": [fin(r) for r in self.specular_high_stderr],
             "colour_transform": self.colour.to_dict(), "iterations": self.iterations,
-            "converged": self.converged, "chi2_reduced": self.chi2_reduced,
+            "converged": self.converged,
+            "chi2_reduced": self.chi2_reduced if self.noise_known else None,
             "noise_source": self.noise_source, "priors": self.priors,
             "reproducibility": self.reproducibility},
             "lighting": self.lighting_block(),
@@ -641,8 +644,15 @@ class AldrianSmithFit:
         unob = (f"; bands {self.unobservable_bands} unobservable (Lambertian Â_l = 0)"
                 if self.unobservable_bands else "")
         return [f"Problem 4 (Aldrian & Smith): {cs}; albedo: {self.albedo_model}; SH lighting "
-                f"to l = {self.lmax}{unob}; specular kappa_l = {k}; chi2_red = "
-                f"{self.chi2_reduced:.3g}.{self._halves_text()}"]
+                f"to l = {self.lmax}{unob}; specular kappa_l = {k}; "
+                + (f"chi2_red = {self.chi2_reduced:.3g}." if self.noise_known else
+                   "no noise model: the errors use the residual variance.")
+                + self._halves_text()]
+
+    @property
+    def noise_known(self) -> bool:
+        """Whether the fit was weighted by a noise model (else no χ² is reported)."""
+        return self.noise_source != NO_NOISE_MODEL
 
     def _halves_text(self) -> str:
         """Say what the split-half check found, in one sentence (empty: not run)."""

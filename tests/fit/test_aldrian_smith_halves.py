@@ -143,3 +143,21 @@ def test_gain_on_half_the_views_is_caught_by_the_pooled_comparison(tmp_path, one
     assert not ad["adequate"]
     assert any("not their combination" in c for c in ad["likely_causes"])
     assert "NOT their combination" in res.summary[0]
+
+
+def test_no_chi2_from_uniform_weights(sphere):
+    """Issue 12's done-when: the A&S summary printed ``chi2_red = 2.16e-06`` on a noise-free
+    simulated capture (no noise model). Without one no χ² is reported anywhere; with one it is.
+    """
+    every = torch.ones(sphere["view"].numel(), dtype=torch.bool)
+    g = torch.Generator().manual_seed(3)
+    img = sphere["clean"] + 0.01 * torch.randn(sphere["clean"].shape, generator=g, dtype=F64)
+    kw = dict(lmax=4, specular_lmax=4, texture_mean=sphere["tmean"], texture_pcs=sphere["T"],
+              colour=(sphere["M"], truth.OFFSET))
+    bare = fit_aldrian_smith(sphere["n"], sphere["r"], img, **kw)
+    res = bare.to_results()
+    assert res["aldrian_smith"]["chi2_reduced"] is None
+    assert res["lighting"]["chi2_reduced"] is None
+    assert "chi2" not in bare.summary()[0] and "no noise model" in bare.summary()[0]
+    noisy = _fit(sphere, every, 3).to_results()
+    assert 0.7 < noisy["aldrian_smith"]["chi2_reduced"] < 1.3
