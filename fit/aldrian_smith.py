@@ -59,7 +59,7 @@ from .brdf_models import diffuse_filter
 from .conditioning import halves_disagreement
 from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
-from .solve import NO_NOISE_MODEL, noise_weights, split_halves, split_label
+from .solve import noise_weights, reported_chi2, split_halves, split_label
 
 __all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "SharedAlbedoReference",
            "estimate_colour_transform_shared_albedo", "SHARED_ALBEDO_AMBIGUITY",
@@ -652,7 +652,7 @@ class AldrianSmithFit:
     @property
     def noise_known(self) -> bool:
         """Whether the fit was weighted by a noise model (else no χ² is reported)."""
-        return self.noise_source != NO_NOISE_MODEL
+        return reported_chi2(True, self.noise_source) is not None
 
     def _halves_text(self) -> str:
         """Say what the split-half check found, in one sentence (empty: not run)."""

@@ -34,7 +34,7 @@ from .brdf_models import BRDFSpec, diffuse_filter, directional_albedo, reciproci
 from .exact_design import LocalLighting, kernel_power
 from .memory import available_bytes, format_bytes
 from .sh import band_of_index, real_sh
-from .solve import noise_weights
+from .solve import noise_weights, reported_chi2
 
 __all__ = ["ParametricFit", "fit_brdf_parametric", "fit_brdf_parametric_sh", "parametric_models",
            "PARAMETRIC_MODELS", "COARSE_SAMPLES", "COARSE_ANGLES", "COARSE_GRID", "SHAPE_STEP",
@@ -103,7 +103,8 @@ class ParametricFit:
         return {"model": self.model,
                 "parameters": {k: v.tolist() for k, v in self.values.items()},
                 "stderr": {k: v.tolist() for k, v in self.stderr.items()},
-                "chi2_reduced": self.chi2_reduced, "n_samples": self.n_samples,
+                "chi2_reduced": reported_chi2(self.chi2_reduced, self.noise_source),
+                "n_samples": self.n_samples,
                 "noise_source": self.noise_source, "checks": self.checks, **self.extra}
 
 

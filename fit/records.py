@@ -13,6 +13,7 @@ import torch
 
 from .conditioning import ILL_CONDITIONING_DEFINITION
 from .lighting import SHFit
+from .solve import reported_chi2
 
 __all__ = ["FIT_SCHEMA", "lighting_json", "conditioning_json", "fin", "fin_list"]
 
@@ -39,7 +40,9 @@ def lighting_json(fit: SHFit) -> dict:
            "determined": fit.determined.tolist(),
            "ill_conditioned_from_l": fit.ill_conditioned_from_l,
            "ill_conditioning_definition": ILL_CONDITIONING_DEFINITION,
-           "bands": fit.bands, "chi2_reduced": fit.chi2_reduced.tolist(),
+           # uniform weights: the mean squared residual is no χ² (issue 12)
+           "bands": fit.bands,
+           "chi2_reduced": reported_chi2(fit.chi2_reduced.tolist(), fit.noise_source),
            "noise_source": fit.noise_source, "scale_fixing": fit.scale_fixing}
     if fit.stderr_unregularised is not None:
         out["stderr_unregularised"] = fin_list(fit.stderr_unregularised)

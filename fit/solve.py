@@ -60,7 +60,7 @@ from .memory import check_wls_memory
 
 __all__ = ["LinearSolution", "BayesExtras", "solve_wls", "solve_bayes", "restrict", "block_rows",
            "SLOPE_GRID", "SLOPE_PRIOR", "EVIDENCE_GRID", "RATIO_LIMIT", "noise_weights",
-           "NO_NOISE_MODEL", "drop_nonfinite_directions",
+           "NO_NOISE_MODEL", "reported_chi2", "drop_nonfinite_directions",
            "default_band_penalty",
            "REGULARIZATION_RULES", "EIG_RTOL",
            "RESOLUTION_LIMIT", "VARIANCE_FLOOR_REL", "GCV_GRID", "split_halves", "SPLIT_BLOCKS",
@@ -138,6 +138,16 @@ def default_band_penalty(lmax: int) -> torch.Tensor:
 #: ``noise_source`` of a fit without a noise model (uniform weights, σ² from the residual): its
 #: χ² is 1 by construction or meaningless, never a test of the model (reports say so).
 NO_NOISE_MODEL = "estimated from the fit residual (no noise model)"
+
+
+def reported_chi2(value, noise_source: str | None):
+    """``value`` where the fit was weighted by a noise model, else ``None``.
+
+    With uniform weights the "reduced χ²" is the mean squared residual in radiance units, not a
+    χ²: results and reports show none (issue 12: "no report shows χ² from uniform weights").
+    ``noise_source`` is the fit's (:data:`NO_NOISE_MODEL`, possibly with notes appended).
+    """
+    return None if NO_NOISE_MODEL in str(noise_source or "") else value
 
 
 def noise_weights(radiance: torch.Tensor, variance: torch.Tensor | None

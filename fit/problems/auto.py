@@ -22,6 +22,7 @@ from ..lighting import fit_albedo_directional, fit_lighting_lambertian
 from ..records import conditioning_json, lighting_json
 from ..render import lambertian_radiance_directional, lambertian_radiance_sh
 from ..result import Estimate, FitResult
+from ..solve import reported_chi2
 from .base import FitOptions, Known, Problem, lighting_estimate, need_reflectance, register_problem
 from .brdf_map import problem_brdf_map
 
@@ -65,7 +66,9 @@ def lambertian_albedo(samples, known: Known, opts: FitOptions) -> FitResult:
     record = {"brdf": {"model": "lambertian",
                        "parameters": {"albedo": fit.albedo.tolist(),
                                       "albedo_stderr": fit.stderr.tolist(),
-                                      "chi2_reduced": fit.chi2_reduced.tolist(),
+                                      # uniform weights: no χ² (issue 12)
+                                      "chi2_reduced": reported_chi2(
+                                          fit.chi2_reduced.tolist(), fit.noise_source),
                                       "noise_source": fit.noise_source},
                        "reproducibility": fit.reproducibility}}
     rep = fit.reproducibility

@@ -29,7 +29,7 @@ from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric
 from ..records import conditioning_json
 from ..result import Estimate, FitResult
 from ..sh import band_of_index, real_sh
-from ..solve import split_halves, split_label
+from ..solve import reported_chi2, split_halves, split_label
 from .base import FitOptions, Known, Problem, need_known_lighting, register_problem
 
 __all__ = ["problem_brdf", "fmt"]
@@ -396,7 +396,9 @@ def _parametric_record(f, model: str, source: str) -> dict:
     """Return the ``brdf`` block of ``results.json`` for a parametric fit."""
     return {"model": model, "parameters": f.spec.parameters(),
             "stderr": {k: v.tolist() for k, v in f.stderr.items()},
-            "chi2_reduced": f.chi2_reduced, "checks": f.checks, "source": source,
+            # uniform weights: no χ² (issue 12)
+            "chi2_reduced": reported_chi2(f.chi2_reduced, f.noise_source),
+            "checks": f.checks, "source": source,
             "parametric": f.to_json()}
 
 

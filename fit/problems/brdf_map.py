@@ -16,7 +16,7 @@ from ..conditioning import halves_in_verdict
 from ..diligent_fit import apply_halves, check_halves, measure_brdf
 from ..lighting import fit_albedo_directional
 from ..result import Estimate, FitResult
-from ..solve import NO_NOISE_MODEL
+from ..solve import reported_chi2
 from .base import FitOptions, Known, Problem, register_problem, residual_verdict
 
 __all__ = ["problem_brdf_map"]
@@ -39,8 +39,8 @@ def problem_brdf_map(samples, known: Known, opts: FitOptions) -> FitResult:
                 "parameters": {"albedo": glob.albedo.tolist(),
                                "albedo_stderr": glob.stderr.tolist(),
                                # uniform weights: a residual variance, no χ² (issue 12)
-                               "chi2_reduced": None if glob.noise_source == NO_NOISE_MODEL
-                               else glob.chi2_reduced.tolist(),
+                               "chi2_reduced": reported_chi2(glob.chi2_reduced.tolist(),
+                                                             glob.noise_source),
                                "noise_source": glob.noise_source}}
 
     def estimates():

@@ -15,6 +15,7 @@ from ..conditioning import ILL_CONDITIONING_DEFINITION
 from ..decomposition import DESIGN_TEXT, MODELS, fit_decomposed_lighting
 from ..records import fin_list
 from ..result import Estimate, FitResult
+from ..solve import reported_chi2
 from .base import (
     FitOptions,
     Known,
@@ -72,7 +73,8 @@ def problem_decomposition(samples, known: Known, opts: FitOptions) -> FitResult:
                         "ill_conditioned_from_l": ill,
                         "ill_conditioning_definition": ILL_CONDITIONING_DEFINITION,
                         "bands": rows, "scale_fixing": "material known (kd, F0, sigma)",
-                        "chi2_reduced": sol.chi2_reduced.tolist(),
+                        "chi2_reduced": reported_chi2(sol.chi2_reduced.tolist(),
+                                                      sol.noise_source),
                         "noise_source": sol.noise_source,
                         "regularization": {"rule": sol.rule,
                                            "lambda_rel": sol.lam_rel.tolist()},
