@@ -65,11 +65,17 @@ __all__ = ["AldrianSmithFit", "ColourReference", "ColourTransform", "SharedAlbed
            "estimate_colour_transform_shared_albedo", "SHARED_ALBEDO_AMBIGUITY",
            "fit_aldrian_smith",
            "fit_aldrian_smith_samples", "check_halves", "apply_halves", "HALVES_MIN_VIEWS",
+           "NOT_CONVERGED",
            "colour_transform_matrix", "fit_colour_transform",
            "estimate_colour_transform", "knn_edges", "LUMA", "TIED_SPECULAR_LMAX"]
 
 #: Rec. 709 luma weights (contrast mixes toward this grey).
 LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
+
+#: What an unconverged fit's results are (summary and adequacy verdict).
+NOT_CONVERGED = ("the joint refinement stopped at its iteration limit with the cost still "
+                 "falling: the estimates and errors are those of its last iterate, not of the "
+                 "optimum (the samples may not identify the model: more views, or a lower lmax)")
 
 #: Specular bands tied to the lighting (A&S: "only 3 free parameters", l = 0, 1, 2).
 TIED_SPECULAR_LMAX = 2
@@ -647,6 +653,7 @@ class AldrianSmithFit:
                 f"to l = {self.lmax}{unob}; specular kappa_l = {k}; "
                 + (f"chi2_red = {self.chi2_reduced:.3g}." if self.noise_known else
                    "no noise model: the errors use the residual variance.")
+                + ("" if self.converged else f" NOT CONVERGED: {NOT_CONVERGED}.")
                 + self._halves_text()]
 
     @property

@@ -12,7 +12,13 @@ import torch
 
 from brdfcap.core.errors import FitError
 
-from ..aldrian_smith import ColourTransform, apply_halves, check_halves, fit_aldrian_smith_samples
+from ..aldrian_smith import (
+    NOT_CONVERGED,
+    ColourTransform,
+    apply_halves,
+    check_halves,
+    fit_aldrian_smith_samples,
+)
 from ..conditioning import halves_in_verdict
 from ..result import Estimate, FitResult
 from .base import (
@@ -93,10 +99,21 @@ def problem_aldrian_smith(samples, known: Known, opts: FitOptions) -> FitResult:
         out.estimates = estimates()
         out.record.update(res.to_results())
         out.summary[0] = res.summary()[0]
+        verdict = None
         if halves.get("checked") and not halves["reproducible"]:
             verdict = residual_verdict(out, samples, known)
             if verdict is not None:
-                out.record["adequacy"] = halves_in_verdict(verdict, _halves_cause(halves))
+                verdict = halves_in_verdict(verdict, _halves_cause(halves))
+        if not res.converged:
+            verdict = verdict or residual_verdict(out, samples, known)
+            if verdict is not None:
+                verdict["adequate"] = False
+                verdict["likely_causes"] = list(verdict.get("likely_causes") or []) + [
+                    f"the fit did not converge in {res.iterations} iterations: {NOT_CONVERGED}"]
+                verdict["verdict"] = ("the fit did not converge (see likely_causes): its "
+                                      "estimates and errors are not those of an optimum")
+        if verdict is not None:
+            out.record["adequacy"] = verdict
 
     return FitResult("aldrian-smith", estimates(), res.prediction, res.to_results(),
                      summary=res.summary(), ambiguities=list(res.ambiguities), restart=restart,

@@ -161,3 +161,36 @@ def test_no_chi2_from_uniform_weights(sphere):
     assert "chi2" not in bare.summary()[0] and "no noise model" in bare.summary()[0]
     noisy = _fit(sphere, every, 3).to_results()
     assert 0.7 < noisy["aldrian_smith"]["chi2_reduced"] < 1.3
+
+
+def test_an_unconverged_fit_says_so(sphere, monkeypatch):
+    """A fit stopped at its iteration limit with the cost still falling is not an optimum: the
+    summary and (through the problem) the adequacy verdict say so instead of presenting its
+    errors as a measurement's.
+    """
+    from functools import partial
+
+    import brdfcap.fit.problems.aldrian_smith as problem
+    from brdfcap.capture.types import NoiseModel
+    from brdfcap.fit.problems import Known, solve_problem
+    from brdfcap.fit.problems.base import FitOptions
+    from brdfcap.reconstruct.geometry import Samples
+
+    sel = sphere["view"] == 0
+    f = _fit(sphere, sel, 0)  # one view: 100 joint steps do not converge (measured: 130 iters)
+    assert not f.converged and "NOT CONVERGED" in f.summary()[0]
+    g = torch.Generator().manual_seed(1)
+    n = sphere["n"]
+    img = sphere["clean"] + 0.01 * torch.randn(sphere["clean"].shape, generator=g, dtype=F64)
+    wo = torch.nn.functional.normalize(n + sphere["r"], dim=-1)  # r = 2(n·wo)n - wo
+    smp = Samples(normal=n, wo=wo, reflected=sphere["r"], radiance=img,
+                  variance=torch.full_like(img, 1e-4), view=sphere["view"],
+                  pixel=torch.zeros(n.shape[0], 2, dtype=torch.long))
+    monkeypatch.setattr(problem, "fit_aldrian_smith_samples",
+                        partial(problem.fit_aldrian_smith_samples, refine_iter=1))
+    res = solve_problem("aldrian-smith", smp, Known(noise=NoiseModel(read=0.01)),
+                        FitOptions(lmax=2))
+    assert res.record["aldrian_smith"]["converged"] is False
+    ad = res.record["adequacy"]
+    assert not ad["adequate"] and "did not converge" in ad["verdict"]
+    assert any("did not converge" in c for c in ad["likely_causes"])
