@@ -216,6 +216,11 @@ def test_aldrian_smith_with_a_texture_model_under_signal_dependent_noise(tmp_pat
     assert res.exit_code == 0, res.output
     r = json.loads((out / "results.json").read_text())
     z = np.array([v for row in r["ground_truth"]["lighting"]["z"] for v in row if v is not None])
-    assert z.size == 27 and np.abs(z).max() < 3.5 and np.sqrt(np.mean(z ** 2)) < 1.6, z
+    # the Laplace check (session 20) leaves out what the κ_0 / L_00 valley carries (a constant
+    # specular DC and the diffuse DC trade bilinearly on a Lambertian sphere: measured ratio
+    # 9.4e7 along the widest direction, Gaussian 1): L_00 and a few band-1 coefficients
+    flagged = r["aldrian_smith"]["laplace_check"]["flagged"]
+    assert {"L[0,0]", "L[0,1]", "L[0,2]", "kappa_0"} <= set(flagged), flagged
+    assert z.size >= 18 and np.abs(z).max() < 3.5 and np.sqrt(np.mean(z ** 2)) < 1.6, z
     assert r["noise_reweighting"]["max_weight_change"] > 0.1
     assert r["aldrian_smith"]["priors"]["grayworld"] == 0.0
