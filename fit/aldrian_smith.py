@@ -691,7 +691,8 @@ class AldrianSmithFit:
             return ""
         if not rep.get("checked"):
             return f" Split halves ({rep['halves']}) not compared: {rep['reason']}."
-        what = (f"{rep['dof']} combinations of the determined lighting, kappa and texture "
+        what = (f"{rep['dof']} combination{'s' if rep['dof'] != 1 else ''} of the determined "
+                "lighting, kappa and texture "
                 "coefficients" + (" (the per-channel lighting scale, a gauge, removed)"
                                   if rep.get("gauge_directions_removed") else ""))
         pooled = rep.get("pooled_vs_halves") or {}

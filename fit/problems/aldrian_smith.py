@@ -126,7 +126,7 @@ def _halves_cause(halves: dict) -> str:
         return (f"the two halves of the samples ({halves['halves']}) give lighting, kappa and "
                 f"texture coefficients that differ beyond their errors (chi2 "
                 f"{halves['chi2']:.3g} > {halves['limit']:.3g}, {halves['dof']} "
-                f"combinations): {w}")
+                f"combination{'s' if halves['dof'] != 1 else ''}): {w}")
     p = halves["pooled_vs_halves"]
     return (f"the two halves of the samples ({halves['halves']}) agree, but the fit of all of "
             f"them is not their combination (chi2 {p['chi2']:.3g} > {p['limit']:.3g}): each "
