@@ -215,6 +215,7 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
     f64 = torch.float64
     nch = b.shape[1]
     shape_name, scale_name = proto.shape_parameter, proto.scale_parameter
+    grid_costs = None
     if shape_name is None:
         theta = torch.tensor(0.0, dtype=f64)
     else:
@@ -224,6 +225,7 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
         grid = torch.linspace(math.log(lo), math.log(hi), grid_points, dtype=f64)
         gbasis, gb, gw = coarse or (basis, b, w)
         cost = [(_scales(*gbasis(math.exp(float(t))), gb, gw)[1]) for t in grid]
+        grid_costs = [(math.exp(float(t)), c_) for t, c_ in zip(grid, cost)]
         j = int(torch.tensor(cost).argmin())
         reach = 1 if coarse is None else 2  # a subset's minimum may sit one cell off
         a_, b_ = float(grid[max(j - reach, 0)]), float(grid[min(j + reach, len(grid) - 1)])
@@ -258,6 +260,25 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
     se = torch.diagonal(cov).clamp_min(0).sqrt()
     if not bool(keep.all()):  # some direction unconstrained by the data
         se = torch.where((u[:, ~keep] ** 2).sum(-1) > 0.5, torch.full_like(se, math.inf), se)
+    shape_check = None
+    if shape_name is not None and bool(torch.isfinite(se[-1])):
+        # the Laplace check on the shape (its profile cost, the scales re-solved): where the
+        # Gaussian interval does not hold, the profile-likelihood interval replaces it
+        lo_b, hi_b = bounds or proto.shape_bounds
+        shape_check = shape_profile_check(
+            lambda t: _scales(*basis(t), b, w)[1], float(theta), rss, float(se[-1]), sig2,
+            (float(proto.shape_bounds[0]), float(proto.shape_bounds[1])),
+            # the bracketing grid's profile, where it was computed on these samples
+            grid=None if coarse is not None or grid_costs is None else grid_costs)
+        if not shape_check["gaussian"]:
+            half = shape_check["half_width"]
+            new = half / 1.96 if math.isfinite(half) else math.inf
+            if new > float(se[-1]):
+                scale = new / float(se[-1])
+                cov[-1, :] = cov[-1, :] * scale
+                cov[:, -1] = cov[:, -1] * scale
+                se = se.clone()
+                se[-1] = new
     values = {"kd": x[0]}
     stderr = {"kd": se[:nch]}
     fields = {"kd": x[0]}
@@ -281,7 +302,82 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
     pred = torch.einsum("ncj,jc->nc", cols, x) + off
     return ParametricFit(model=model, spec=spec, values=values, stderr=stderr, names=names,
                          covariance=cov, chi2_reduced=chi2, n_samples=nuse, noise_source=src,
-                         checks=chk, prediction=pred)
+                         checks=chk, prediction=pred,
+                         extra={} if shape_check is None else {"shape_check": shape_check})
+
+
+#: The profile cost's even part at ±2 s.e. of the shape over the Gaussian's prediction
+#: (``4 σ²``) must lie in this range; outside, the shape's interval is the profile likelihood's.
+SHAPE_RATIO = (0.5, 2.0)
+#: Points per unit of ``log θ`` of the scan for the profile-likelihood interval (a factor 1.28
+#: per step), refined by :data:`PROFILE_BISECTIONS` halvings (to 2e-7 in ``log θ``).
+PROFILE_STEPS = 4
+PROFILE_BISECTIONS = 20
+
+
+def shape_profile_check(rss_at, theta: float, rss0: float, se: float, sig2: float,
+                        limits: tuple[float, float], grid: list | None = None) -> dict:
+    """Check the Gaussian interval of a shape parameter against its profile likelihood.
+
+    ``rss_at(θ)`` is the weighted RSS with the linear scales re-solved (variable projection);
+    ``rss0`` its value at the fit ``theta``, ``se`` the shape's standard error from the
+    Gauss–Newton covariance, ``sig2`` the variance scale that covariance used, ``limits`` the
+    model's shape range. For a Gaussian posterior the profile rises by ``4 σ²`` at ``θ ± 2 se``
+    (Bates & Watts 1980, "Relative curvature measures of nonlinearity"); where the even part of
+    the rise (one-sided at a limit) is outside :data:`SHAPE_RATIO` of that, the 95% interval is
+    the profile likelihood's ``{θ: rss(θ) ≤ rss0 + 1.96² σ²}`` (Venzon & Moolgavkar 1988,
+    Appl. Statist. 37(1)), found by a scan in ``log θ`` outward from the fit to the first
+    crossing and refined by bisection; it is open (``inf``) where the profile never rises that
+    far inside the limits. ``grid``: ``[(θ, rss)]`` of the profile over the whole range (the
+    fit's bracketing grid); a point of it below the level outside the interval (another
+    valley the data do not rule out) marks the interval non-Gaussian and extends it to cover
+    that point. Returns ``ratio``, ``gaussian``, ``interval_95``, ``half_width`` (the larger
+    distance from ``theta`` to an end: the symmetric summary) and ``other_minima`` (grid points
+    below the level outside the local interval).
+    """
+    lo, hi = limits
+    pred = 4.0 * sig2
+    up, dn = theta + 2.0 * se, theta - 2.0 * se
+    r_up = (rss_at(min(up, hi)) - rss0) / pred if up <= hi else math.nan
+    r_dn = (rss_at(dn) - rss0) / pred if dn >= lo else math.nan
+    sides = [r for r in (r_up, r_dn) if math.isfinite(r)]
+    ratio = sum(sides) / len(sides) if sides else math.nan
+    gaussian = bool(sides) and SHAPE_RATIO[0] <= ratio <= SHAPE_RATIO[1]
+    level = rss0 + 1.96 ** 2 * sig2
+    far = [t for t, c in (grid or []) if c <= level
+           and not theta - 1.96 * se - 1e-12 <= t <= theta + 1.96 * se + 1e-12]
+    gaussian = gaussian and not far
+    out = {"ratio": ratio, "ratio_range": list(SHAPE_RATIO), "gaussian": gaussian,
+           "interval_95": [theta - 1.96 * se, theta + 1.96 * se], "half_width": 1.96 * se,
+           "other_minima": len(far)}
+    if gaussian:
+        return out
+
+    def end(direction: int) -> float:
+        t0 = math.log(theta)
+        limit = math.log(hi if direction > 0 else lo)
+        prev = t0
+        n = max(2, int(abs(limit - t0) * PROFILE_STEPS) + 1)
+        for k in range(1, n + 1):
+            t = t0 + (limit - t0) * k / n
+            if rss_at(math.exp(t)) > level:
+                a, c = prev, t
+                for _ in range(PROFILE_BISECTIONS):
+                    m = 0.5 * (a + c)
+                    if rss_at(math.exp(m)) > level:
+                        c = m
+                    else:
+                        a = m
+                return math.exp(c)
+            prev = t
+        return math.inf if direction > 0 else lo  # the data do not bound it inside the range
+
+    a, c = end(-1), end(+1)
+    if far:  # the hull of every region below the level the grid found
+        a, c = min([a] + far), max([c] + far)
+    half = max(theta - a, c - theta)
+    out.update({"interval_95": [a, c], "half_width": half})
+    return out
 
 
 #: Spacing in ``log θ`` of the bracketing grid over a range given as ``bounds`` (at least 5
@@ -510,7 +606,7 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
     if subset is not None:  # the prediction (and variance) of every sample, chunk by chunk
         fit.prediction, fit.variance = _predict_all(fit, proto, basis_of, n, r, diffuse, var, L,
                                                     k, tau2, chunk=max(1024, budget // per))
-    fit.extra = extra
+    fit.extra = {**fit.extra, **extra}
     return fit
 
 
