@@ -56,7 +56,7 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
-from .conditioning import halves_disagreement
+from .conditioning import combination_disagreement, halves_disagreement
 from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights, reported_chi2, split_halves, split_label
@@ -1643,9 +1643,7 @@ def check_halves(f: AldrianSmithFit, view: torch.Tensor | None = None) -> dict:
     # model without per-sample nuisance parameters; with a free albedo each half can absorb
     # a systematic of its own (e.g. a gain on some views) in the albedo and agree with the
     # other, while the full fit, whose albedo cannot, moves the shared parameters instead
-    pa, pb = (torch.linalg.pinv(0.5 * (c + c.T), hermitian=True) for c in (ca, cb))
-    comb = torch.linalg.lstsq(pa + pb, (pa @ xa + pb @ xb)[:, None]).solution[:, 0]
-    pooled = halves_disagreement(xf - comb, cf)
+    pooled = combination_disagreement(xf, cf, xa, ca, xb, cb)
     zb: dict[int, float] = {}  # per lighting band: largest |difference| / its error
     for j, (_, k) in enumerate(want):
         if k[0] == "L":

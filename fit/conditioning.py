@@ -54,7 +54,7 @@ __all__ = ["REL_STDERR_LIMIT", "ILL_CONDITIONING_DEFINITION", "band_statistics",
            "weak_prior_variance", "band_prior_weakening", "MEASURED_BAND_GAMMA",
            "hidden_source", "HIDDEN_SOURCE_LMAX", "ZERO_BAND_LIMIT", "band_data_only_covariance",
            "zero_band_bound", "band_statistics_bayes", "model_adequacy", "residual_adequacy",
-           "VERDICT_NOT_WIDENED", "VERDICT_HALVES",
+           "VERDICT_NOT_WIDENED", "VERDICT_HALVES", "combination_disagreement",
            "suggest_lmax",
            "noise_level", "predicted_lstar", "predicted_lstar_phong",
            "predicted_lstar_microfacet"]
@@ -241,6 +241,21 @@ def halves_disagreement(d: torch.Tensor, cov: torch.Tensor) -> dict:
     lim = _chi2_quantile(REPRODUCIBILITY_LEVEL, n)
     return {"chi2": z2, "limit": lim, "dof": n, "reproducible": z2 <= lim,
             "widened_by": math.sqrt(z2 / n) if z2 > lim else 1.0}
+
+
+def combination_disagreement(x_full: torch.Tensor, cov_full: torch.Tensor,
+                             xa: torch.Tensor, cov_a: torch.Tensor,
+                             xb: torch.Tensor, cov_b: torch.Tensor) -> dict:
+    """Compare a pooled fit with the precision-weighted combination of its two halves' fits.
+
+    For a model whose unknowns are all shared the two are equal; where each half has nuisance
+    parameters of its own (a free albedo, an albedo map) a half can absorb what the pooled fit
+    must put in the shared ones. :func:`halves_disagreement` of ``x_full − x_comb`` with the
+    pooled fit's covariance ``cov_full``.
+    """
+    pa, pb = (torch.linalg.pinv(0.5 * (c + c.T), hermitian=True) for c in (cov_a, cov_b))
+    comb = torch.linalg.lstsq(pa + pb, (pa @ xa + pb @ xb)[:, None]).solution[:, 0]
+    return halves_disagreement(x_full - comb, cov_full)
 
 
 def halves_in_verdict(adequacy: dict, cause: str) -> dict:

@@ -66,7 +66,7 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import BRDFSpec, render_directional
-from .conditioning import halves_disagreement
+from .conditioning import combination_disagreement, halves_disagreement
 from .filters import lambda_l, phong_filter
 from .inverse_brdf import ALIAS_CORR, aliased_pairs
 from .sh import legendre_normalized
@@ -705,9 +705,7 @@ def check_halves(samples, meas: BrdfMeasurement, shape: tuple[int, int]) -> dict
         sd = (ca.diagonal() + cb.diagonal()).clamp_min(1e-300).sqrt()
         names = [f"ks[{c}]" for c in range(len(pf.ks))] + ["shininess"]
         lobe["difference_z"] = {nm: float(z) for nm, z in zip(names, (th[1] - th[2]) / sd)}
-        pa_, pb_ = (torch.linalg.pinv(0.5 * (c + c.T), hermitian=True) for c in (ca, cb))
-        comb = torch.linalg.lstsq(pa_ + pb_, (pa_ @ th[1] + pb_ @ th[2])[:, None]).solution[:, 0]
-        lobe["pooled_vs_halves"] = halves_disagreement(th[0] - comb, cf)
+        lobe["pooled_vs_halves"] = combination_disagreement(th[0], cf, th[1], ca, th[2], cb)
         lobe["widened_by"] = max(lobe["widened_by"], lobe["pooled_vs_halves"]["widened_by"])
         lobe["reproducible"] = lobe["widened_by"] == 1.0
     out["lobe"] = lobe

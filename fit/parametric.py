@@ -264,7 +264,6 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
     if shape_name is not None and bool(torch.isfinite(se[-1])):
         # the Laplace check on the shape (its profile cost, the scales re-solved): where the
         # Gaussian interval does not hold, the profile-likelihood interval replaces it
-        lo_b, hi_b = bounds or proto.shape_bounds
         shape_check = shape_profile_check(
             lambda t: _scales(*basis(t), b, w)[1], float(theta), rss, float(se[-1]), sig2,
             (float(proto.shape_bounds[0]), float(proto.shape_bounds[1])),
@@ -338,7 +337,7 @@ def shape_profile_check(rss_at, theta: float, rss0: float, se: float, sig2: floa
     lo, hi = limits
     pred = 4.0 * sig2
     up, dn = theta + 2.0 * se, theta - 2.0 * se
-    r_up = (rss_at(min(up, hi)) - rss0) / pred if up <= hi else math.nan
+    r_up = (rss_at(up) - rss0) / pred if up <= hi else math.nan
     r_dn = (rss_at(dn) - rss0) / pred if dn >= lo else math.nan
     sides = [r for r in (r_up, r_dn) if math.isfinite(r)]
     ratio = sum(sides) / len(sides) if sides else math.nan

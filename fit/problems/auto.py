@@ -17,13 +17,21 @@ import torch
 from brdfcap.core.errors import FitError
 
 from ..brdf_models import BRDFSpec
-from ..conditioning import halves_in_verdict, residual_adequacy
+from ..conditioning import halves_in_verdict
 from ..lighting import fit_albedo_directional, fit_lighting_lambertian
 from ..records import conditioning_json, lighting_json
 from ..render import lambertian_radiance_directional, lambertian_radiance_sh
 from ..result import Estimate, FitResult
 from ..solve import reported_chi2
-from .base import FitOptions, Known, Problem, lighting_estimate, need_reflectance, register_problem
+from .base import (
+    FitOptions,
+    Known,
+    Problem,
+    lighting_estimate,
+    need_reflectance,
+    prediction_verdict,
+    register_problem,
+)
 from .brdf_map import problem_brdf_map
 
 __all__ = ["problem_auto", "lambertian_lighting", "lambertian_albedo"]
@@ -74,10 +82,7 @@ def lambertian_albedo(samples, known: Known, opts: FitOptions) -> FitResult:
     rep = fit.reproducibility
     if rep is not None and not all(rep["reproducible"]):
         # the error carries the halves' disagreement: the verdict says so (not "lower bounds")
-        noise = known.noise is not None and getattr(known.noise, "is_known", False)
-        ad = residual_adequacy(samples.radiance, pred, samples.variance if noise else None,
-                               view=getattr(samples, "view", None),
-                               n_params=int(fit.albedo.numel()))
+        ad = prediction_verdict(pred, int(fit.albedo.numel()), samples, known)
         record["adequacy"] = halves_in_verdict(ad, (
             f"the two halves of the samples ({rep['halves']}) give albedos that differ beyond "
             f"their errors (chi2 up to {max(rep['chi2']):.3g} > {rep['limit']:.3g}): the "

@@ -30,7 +30,7 @@ __all__ = ["FitOptions", "Known", "Problem", "PROBLEMS", "register_problem", "ge
            "check_lmax",
            "brdf_from_material", "need_environment", "need_reflectance", "need_known_lighting",
            "lighting_estimate",
-           "material_estimates", "residual_verdict"]
+           "material_estimates", "residual_verdict", "prediction_verdict"]
 
 
 @dataclass(frozen=True)
@@ -283,14 +283,21 @@ def residual_verdict(res: FitResult, samples, known: Known) -> dict | None:
     :func:`..conditioning.residual_adequacy`: χ² where the capture has a noise model, the
     residual's structure always; for problems without an adequacy verdict of their own.
     """
-    b = getattr(samples, "radiance", None)
-    if res.prediction is None or b is None:
+    if res.prediction is None:
         return None
-    pred = res.prediction.to(b.device)
+    n_params = sum(int(e.value.numel()) for e in res.estimates if not e.known)
+    return prediction_verdict(res.prediction, n_params, samples, known)
+
+
+def prediction_verdict(prediction, n_params: int, samples, known: Known) -> dict | None:
+    """:func:`residual_verdict` for a ``prediction`` of ``n_params`` fitted parameters."""
+    b = getattr(samples, "radiance", None)
+    if b is None:
+        return None
+    pred = prediction.to(b.device)
     if pred.shape != b.shape:
         return None
     noise = known.noise is not None and getattr(known.noise, "is_known", False)
     var = getattr(samples, "variance", None) if noise else None
-    n_params = sum(int(e.value.numel()) for e in res.estimates if not e.known)
     return residual_adequacy(b, pred, var, view=getattr(samples, "view", None),
                              n_params=n_params)
