@@ -516,6 +516,8 @@ class AldrianSmithFit:
     _args: dict | None = field(default=None, repr=False)
     #: the rows of the caller's samples fitted (:func:`fit_aldrian_smith_samples` subsamples)
     _index: torch.Tensor | None = field(default=None, repr=False)
+    #: the Laplace check deferred by ``_fit(probe=False)`` (:func:`_finish_laplace` runs it)
+    _laplace_pending: object | None = field(default=None, repr=False, compare=False)
 
     def smoothness_chosen(self, rule: str, detail: str = "") -> None:
         """Record how the free albedo's smoothness weight was chosen (``priors``, albedo model)."""
@@ -921,12 +923,15 @@ def fit_aldrian_smith(normal: torch.Tensor, reflected: torch.Tensor, radiance: t
 
 def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, texture_pcs, colour,
          grayworld, simplicity, smoothness, edges, positions, albedo_level, albedo_prior,
-         variance, max_outer, inner_iter, refine_iter, tol, start=None) -> AldrianSmithFit:
+         variance, max_outer, inner_iter, refine_iter, tol, start=None,
+         probe=True) -> AldrianSmithFit:
     """Body of :func:`fit_aldrian_smith` (its arguments and defaults, passed by keyword).
 
     ``start``: the ``_state`` of a fit of the same samples with another smoothness weight — its
     parameters start the joint refinement (the paper's step order is skipped) and its prior
     scale ``d`` is kept, so that the weights of an evidence search scale one prior.
+    ``probe``: run the Laplace check now; ``False`` defers it (``_laplace_pending``, run by
+    :func:`_finish_laplace` on the one fit an evidence search keeps).
     """
     n = torch.nn.functional.normalize(torch.as_tensor(normal).to(_F64), dim=-1)
     r = torch.nn.functional.normalize(torch.as_tensor(reflected).to(_F64), dim=-1)
@@ -1229,7 +1234,7 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
         _, _, Haa_, ra_, _, _, _ = system(th_, ta, want_ga=False)
         return cost(th_, ta + solve_aa(Haa_, ra_))
 
-    laplace = laplace_probe(profiled_cost, th, profiled_cost(th), Sg, cov_g)
+    c_opt, cov_probe = profiled_cost(th), cov_g
     weak_var = None
     if not texture:
         # the same optimum, the albedo's smoothness prior WEAK_PRIOR_FACTOR times weaker
@@ -1295,11 +1300,6 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     Lse = torch.full((K, 3), math.inf, dtype=_F64)
     Lse[observ] = se_g[iL].reshape(3, ko).T
     determined = observ.clone()
-    touched = laplace["touched"]  # (G,) coefficients a non-Gaussian direction carries
-    hit = torch.zeros(K, dtype=torch.bool)
-    hit[observ] = touched[iL].reshape(3, ko).any(0)
-    determined &= ~hit
-    Lse[hit] = math.inf
     prior_set: list[int] = []
     if share is not None:
         # a band whose precision comes mostly from the albedo's smoothness prior is set by
@@ -1371,8 +1371,7 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
     kse, kdet = se_g[iK].clone(), torch.ones(nk, dtype=torch.bool)
     if not texture:
         kse[0], kdet[0] = math.inf, False
-    kse[touched[iK]], kdet[touched[iK]] = math.inf, False
-    return AldrianSmithFit(
+    fit = AldrianSmithFit(
         lmax=lmax, lighting_radiance=Lfull, lighting_stderr=Lse, determined=determined,
         unobservable_bands=unobservable, albedo=alb, albedo_model=albedo_model,
         texture_coefficients=ta.clone() if texture else None,
@@ -1388,11 +1387,36 @@ def _fit(*, normal, reflected, radiance, lmax, specular_lmax, texture_mean, text
                 "albedo_prior": None if texture else albedo_prior,
                 "albedo_level": None if texture else albedo_level},
         ambiguities=amb, log_evidence=log_ev, data_share=share, prior_set_bands=prior_set,
-        laplace={"directions": laplace["directions"], "ratios": laplace["ratios"],
-                 "valid": laplace["valid"], "ratio_range": list(LAPLACE_RATIO),
-                 "flagged": [nm for nm, t in zip(names, touched.tolist()) if t]},
-        laplace_flagged=hit,
         _state=(th.clone(), ta.clone(), prior_block[1]))
+
+    def run_probe(f: AldrianSmithFit) -> None:
+        # the coefficients a non-Gaussian direction carries: not determined, no interval
+        lp = laplace_probe(profiled_cost, th, c_opt, Sg, cov_probe)
+        touched = lp["touched"]  # (G,)
+        hit = torch.zeros(K, dtype=torch.bool)
+        hit[observ] = touched[iL].reshape(3, ko).any(0)
+        f.determined &= ~hit
+        f.lighting_stderr[hit] = math.inf
+        f.specular_low_stderr[touched[iK]] = math.inf
+        f.specular_low_determined[touched[iK]] = False
+        f.laplace = {"directions": lp["directions"], "ratios": lp["ratios"],
+                     "valid": lp["valid"], "ratio_range": list(LAPLACE_RATIO),
+                     "flagged": [nm for nm, t in zip(names, touched.tolist()) if t]}
+        f.laplace_flagged = hit
+
+    if probe:
+        run_probe(fit)
+    else:
+        fit._laplace_pending = run_probe
+    return fit
+
+
+def _finish_laplace(f: AldrianSmithFit) -> AldrianSmithFit:
+    """Run a fit's deferred Laplace check (``_fit(probe=False)``) and drop its closure."""
+    run, f._laplace_pending = f._laplace_pending, None
+    if run is not None:
+        run(f)
+    return f
 
 
 def _logdet_lu(lu) -> float:
@@ -1443,10 +1467,14 @@ def _fit_smoothness_by_evidence(args: dict) -> AldrianSmithFit:
     fits: list[tuple[float, AldrianSmithFit]] = []
     start = None
     for lam in SMOOTHNESS_GRID:
-        f = _fit(**{**args, "smoothness": lam, "start": start})
+        # the Laplace check is run on the kept fit only (it costs ~0.6 s a fit)
+        f = _fit(**{**args, "smoothness": lam, "start": start, "probe": False})
         fits.append((lam, f))
         start = f._state
         best = max(g.log_evidence for _, g in fits)
+        for _, g in fits:  # a fit below the tie can no longer be kept: free its closure
+            if g.log_evidence < best - EVIDENCE_TIE:
+                g._laplace_pending = None
         if f.log_evidence < best - EVIDENCE_DROP:
             break
     best = max(g.log_evidence for _, g in fits)
@@ -1456,7 +1484,7 @@ def _fit_smoothness_by_evidence(args: dict) -> AldrianSmithFit:
                         f"{EVIDENCE_TIE:g} nat of the best)",
                         "from " + ", ".join(f"{x:g}" for x, _ in fits))
     f.priors["smoothness_evidence"] = [[lam_, g.log_evidence] for lam_, g in fits]
-    return f
+    return _finish_laplace(f)
 
 
 #: The weaker smoothness prior a free-albedo fit's data share is measured against (× the
