@@ -56,7 +56,14 @@ import torch
 from brdfcap.core.errors import FitError
 
 from .brdf_models import diffuse_filter
-from .conditioning import combination_disagreement, halves_disagreement
+from .conditioning import (
+    LAPLACE_DIRECTIONS,
+    LAPLACE_RATIO,
+    LAPLACE_SHARE,
+    combination_disagreement,
+    halves_disagreement,
+    laplace_probe,
+)
 from .memory import check_dense_memory
 from .sh import band_of_index, real_sh
 from .solve import noise_weights, reported_chi2, split_halves, split_label
@@ -781,60 +788,6 @@ class _GivenMatrix(ColourTransform):
         if self.ambiguity:
             out["not_identified"] = self.ambiguity
         return out
-
-
-#: Widest posterior directions :func:`laplace_probe` tries.
-LAPLACE_DIRECTIONS = 5
-#: At ±2 standard deviations along a probed direction the cost's even part must rise by this
-#: share of the Gaussian's prediction (Δχ² = 4 in σ² units); outside, the quadratic model of
-#: the cost fails within the interval it reports. Measured (quadratic 1): the 3-view quadrature
-#: sphere 0.99-1.01 (its intervals cover 90-98%), the same at lmax 2 with band 4 truncated 4.7
-#: (narrower than claimed along that direction: conservative), one view 43-3.6e6 (lighting
-#: chi2 against the truth 3900-9000 over 54 coefficients). Below 0.5 the posterior would be
-#: wider than claimed.
-LAPLACE_RATIO = (0.5, 10.0)
-#: A coefficient is carried by a direction that holds at least this share of its variance.
-LAPLACE_SHARE = 0.5
-
-
-def laplace_probe(cost_at, theta: torch.Tensor, c_opt: float, H: torch.Tensor,
-                  cov: torch.Tensor, k: int = LAPLACE_DIRECTIONS) -> dict:
-    """Check the Gaussian (Laplace) posterior of a nonlinear fit where it is widest.
-
-    The covariance ``cov = s² H⁻¹`` comes from the Gauss–Newton Hessian ``H`` at the optimum
-    ``theta`` (cost ``c_opt``); it describes the posterior only while the model is nearly linear
-    over the interval it claims (Bates & Watts 1980, J. R. Statist. Soc. B 42(1), "Relative
-    curvature measures of nonlinearity"). Along each of the ``k`` widest eigen-directions ``v``
-    of ``cov`` (variance ``λ``) the even part of the cost ``½ [c(theta + δ) + c(theta − δ)] −
-    c_opt``, ``δ = 2 sqrt(λ) v`` (nuisance parameters re-solved by the caller), must lie within
-    :data:`LAPLACE_RATIO` times the quadratic prediction ``δᵀ H δ``; where it does not, the
-    interval is not what the data say, and every coefficient that direction carries
-    (:data:`LAPLACE_SHARE` of its variance) is flagged.
-
-    Returns ``ratios`` (per direction), ``valid`` (per direction),
-    ``touched`` ``(G,)`` bool, ``directions`` (how many were probed).
-    """
-    g = cov.shape[0]
-    ev, V = torch.linalg.eigh(0.5 * (cov + cov.T))
-    var = cov.diagonal().clamp_min(1e-300)
-    touched = torch.zeros(g, dtype=torch.bool)
-    ratios, valid = [], []
-    for j in range(g - 1, max(g - 1 - k, -1), -1):
-        if not float(ev[j]) > 0:
-            continue
-        d = 2.0 * float(ev[j]) ** 0.5 * V[:, j]
-        pred = float(d @ H @ d)
-        if not pred > 0:
-            continue
-        cp, cm = cost_at(theta + d), cost_at(theta - d)
-        # the even part: a gradient left at the optimum (stopped iterations) cancels
-        r = 0.5 * (cp + cm - 2.0 * c_opt) / pred if math.isfinite(cp + cm) else math.inf
-        ok = LAPLACE_RATIO[0] <= r <= LAPLACE_RATIO[1]
-        ratios.append(r)
-        valid.append(ok)
-        if not ok:
-            touched |= float(ev[j]) * V[:, j] ** 2 / var > LAPLACE_SHARE
-    return {"ratios": ratios, "valid": valid, "touched": touched, "directions": len(ratios)}
 
 
 def _laplacian(edges: torch.Tensor, n: int) -> sp.csr_matrix:

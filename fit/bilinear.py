@@ -30,6 +30,10 @@ Ambiguities (R&H 2001 §6; Aldrian & Smith's "red light or red object") — repo
   listed in ``ambiguities`` and their coefficients flagged not determined; what *is* determined
   are the gauge-invariant products ``f_l L_lm`` and ``kd Â_l L_lm`` (checked in the tests).
 * frequencies: lighting bands beyond the specular filter's ``l*`` are not determined.
+
+The joint posterior of the factors is checked where it is widest
+(:func:`~brdfcap.fit.conditioning.laplace_probe`): the factors a non-Gaussian direction carries
+lose their intervals (``laplace``). The products keep theirs: the images are linear in them.
 """
 
 from __future__ import annotations
@@ -44,11 +48,13 @@ from brdfcap.core.errors import FitError
 from .brdf_models import diffuse_filter, phong_sh_filter
 from .conditioning import (
     FILTER_DEFINITION,
+    LAPLACE_RATIO,
     band_determined,
     band_statistics,
     data_resolved,
     filter_band_rows,
     halves_disagreement,
+    laplace_probe,
     noise_level,
     residual_adequacy,
 )
@@ -132,6 +138,10 @@ class BilinearFit:
     kept: torch.Tensor | None = None
     #: the factorisation's options, for refits of its samples (:func:`check_products_halves`)
     refit_options: dict = field(default_factory=dict)
+    #: the Laplace check (:func:`~brdfcap.fit.conditioning.laplace_probe`) of the joint
+    #: posterior: ``directions``, ``ratios``, ``valid``, ``flagged`` (parameters it flagged;
+    #: the gauge-invariant products are not: the images are linear in them)
+    laplace: dict | None = None
 
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
@@ -173,6 +183,7 @@ class BilinearFit:
                                   "chi2_history": self.history[-10:]},
                 "ambiguities": self.ambiguities, "conditioning": cond,
                 "horizon": self.horizon, "adequacy": self.adequacy,
+                "laplace_check": self.laplace,
                 "gauge_invariant": self._gauge_json()}
 
     def _gauge_json(self) -> dict:
@@ -197,7 +208,25 @@ class BilinearFit:
              f"specular filter from {from_l(self.filter_ill_conditioned_from_l)}."]
         s += ["Ambiguity: " + a["name"] + " — " + a["resolution"] for a in self.ambiguities]
         s += horizon_lines(getattr(self, "horizon", None), "Problem 3: ambiguities")
+        s += _laplace_lines(getattr(self, "laplace", None))
         return s
+
+
+def _laplace_lines(lp: dict | None) -> list[str]:
+    if not lp or all(lp["valid"]):
+        return []
+    bad = [f"{r:.3g}" for r, ok in zip(lp["ratios"], lp["valid"]) if not ok]
+    fl = lp["flagged"]
+    nl = sum(1 for x in fl if x.startswith("L["))
+    other = [x for x in fl if not x.startswith("L[")]
+    return [f"Laplace check (Bates & Watts 1980): along {len(bad)} of the {lp['directions']} "
+            f"widest posterior directions the cost rises {', '.join(bad)}x what the "
+            f"Gaussian error model predicts at 2 s.d. (allowed "
+            f"{lp['ratio_range'][0]:g}-{lp['ratio_range'][1]:g}x): the bilinear model "
+            f"curves within the intervals it would report. Not determined, no interval: "
+            f"{nl} lighting coefficients" + (f", {', '.join(other)}" if other else "")
+            + " (the factors those directions carry, half their variance or more); the "
+            "gauge-invariant products, in which the images are linear, keep theirs."]
 
 
 def _lstsq(g: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
@@ -479,6 +508,16 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         gauge_var += torch.where(moves & ~mat, spread ** 2 / 12.0, torch.zeros_like(v))
         null_dirs.append(sorted({labels[i] for i in torch.nonzero(mat).flatten().tolist()}))
     se_joint = (se_joint ** 2 + gauge_var).sqrt()
+    # does the Gaussian posterior hold where it is widest? (the bilinear map curves: a straight
+    # step along a weak direction leaves the valley of a product the data fix)
+    theta0 = torch.cat([L.T.reshape(-1), f[1:], kd])
+
+    def _cost_at(th_):
+        return _rss(th_[:off].reshape(nch, k).T, th_[off + lb:],
+                    torch.cat([torch.ones(1, dtype=f64), th_[off:off + lb]]))
+
+    laplace = laplace_probe(_cost_at, theta0, rss, H, hinv * sig2)
+    lap_t = laplace["touched"]  # (np_,) parameters a non-Gaussian direction carries
     amb_l = sorted({l for d in null_dirs for (kind, l) in d if kind == "lighting"})
     amb_f = sorted({l for d in null_dirs for (kind, l) in d if kind == "filter"})
     amb_kd = any(kind == "kd" for d in null_dirs for (kind, _) in d)
@@ -497,7 +536,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     eps = noise_level(sol_l)
     # uncertainty = joint; coefficients in an exact ambiguity = not determined
     se_l = se_joint[: nch * k].reshape(nch, k).T
-    amb_mask = touched_p[: nch * k].reshape(nch, k).T  # (K, C): material null components only
+    # (K, C): material null components, and what a direction failing the Laplace check carries
+    amb_mask = (touched_p | lap_t)[: nch * k].reshape(nch, k).T
     sol_l.determined = sol_l.determined & ~amb_mask
     sol_l.stderr_unregularised = torch.where(sol_l.determined, se_l,
                                              torch.full_like(se_l, math.inf))
@@ -562,6 +602,11 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
             sol_b.determined[l - 1] = False
     if amb_kd:
         kd_se = torch.where(touched_p[nch * k + lb:], torch.full_like(kd_se, math.inf), kd_se)
+    for l in range(1, lb + 1):  # the Laplace check's: not determined, no interval
+        if bool(lap_t[nch * k + l - 1]):
+            f_se[l] = math.inf
+            sol_b.determined[l - 1] = False
+    kd_se = torch.where(lap_t[nch * k + lb:], torch.full_like(kd_se, math.inf), kd_se)
     # band statistics of the filter: one coefficient per band, reference f_0 = 1
     fsol = LinearSolution(
         coefficients=torch.cat([torch.ones(1, 1, dtype=f64), sol_b.coefficients[:lb]]),
@@ -615,11 +660,17 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     ]
     gi = _gauge_invariant(sol_l.coefficients, f, kd, band, lmax, lb, hinv * sig2, nulls,
                           _product_resolution(yn, yr, w, band, lmax, lb))
+    pnames = ([f"L[{i},{c}]" for c in range(nch) for i in range(k)]
+              + [f"f_{l}" for l in range(1, lb + 1)] + [f"kd_{c}" for c in range(nch)])
+    lap = {"directions": laplace["directions"], "ratios": laplace["ratios"],
+           "valid": laplace["valid"], "ratio_range": list(LAPLACE_RATIO),
+           "flagged": [nm for nm, t in zip(pnames, lap_t.tolist()) if t],
+           "products": "not flagged: the data are linear in the products (module doc)"}
     return BilinearFit(lighting=lt, kd=kd, kd_stderr=kd_se, filter=f, filter_stderr=f_se,
                        filter_bands=f_rows, filter_ill_conditioned_from_l=f_ill,
                        iterations=it, converged=converged, history=history, prediction=pred,
                        ambiguities=amb, gauge_invariant=gi, filter_determined=f_det,
-                       adequacy=adequacy)
+                       adequacy=adequacy, laplace=lap)
 
 
 def _band_sum(lmax: int, lb: int) -> torch.Tensor:
