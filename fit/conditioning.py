@@ -1267,7 +1267,8 @@ def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tenso
 
     ``b``, ``pred`` ``(N, C)`` measured and re-rendered radiance in the samples' scan order;
     ``variance`` ``(N, C)`` the noise model's (``None``: no noise model, so no χ², only the
-    residual's structure); ``n_params``: the fit's number of free parameters (``ν = N − p``);
+    residual's structure); ``n_params``: the fit's number of free parameters over all ``C``
+    channels (``ν = N − p / C`` per channel);
     ``widen``: the caller scales its errors by the result's ``widen`` (and by ``sqrt(χ²/ν)``
     when above 1), so the wording says they are widened (``widen_applied``), not "judged after
     the fit".
@@ -1286,7 +1287,11 @@ def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tenso
         wres = res * w.sqrt()
     else:  # unit-variance residual: its structure, not its size, is judged
         wres = res / res[ok].std(0).clamp_min(1e-300) if int(ok.sum()) > 1 else res
-    dof = torch.full((res.shape[1],), float(max(int(ok.sum()) - n_params, 1)),
+    # each channel's share of the parameters (a joint fit's are shared by its channels):
+    # counting all of them against each channel's residual left a few-sample fit (problem 3,
+    # 68 samples, 156 parameters over 3 channels) with ν = 1 and χ²/ν 21 for a residual at
+    # the noise (0.7-1.2 by the fit's own count)
+    dof = torch.full((res.shape[1],), float(max(int(ok.sum()) - n_params / res.shape[1], 1)),
                      dtype=torch.float64, device=res.device)
     chi2 = (wres ** 2).sum(0) / dof
     out = _adequacy(res, wres, chi2, dof, b.to(res), w, noise_known=noise_known, view=view,

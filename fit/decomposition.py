@@ -301,7 +301,8 @@ def fit_decomposed_lighting(normal: torch.Tensor, reflected: torch.Tensor,
     parts = exact_decomposition(material, n, r, slow, dirs, power) if design == "exact" else \
         microfacet_decomposition(n, r, slow, dirs, power, material.kd, material.f0,
                                  float(material.sigma))
-    adequacy = residual_adequacy(b, parts.total, var, view=view, n_params=k + nj, widen=True)
+    adequacy = residual_adequacy(b, parts.total, var, view=view, n_params=(k + nj) * b.shape[1],
+                                 widen=True)
     wf = float(adequacy["widen"])
     if wf > 1.0:  # a structured residual: the AR(1) factor on every error (module doc)
         sol.stderr = sol.stderr * wf
