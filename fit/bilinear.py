@@ -30,6 +30,8 @@ Ambiguities (R&H 2001 §6; Aldrian & Smith's "red light or red object") — repo
   listed in ``ambiguities`` and their coefficients flagged not determined; what *is* determined
   are the gauge-invariant products ``f_l L_lm`` and ``kd Â_l L_lm`` (checked in the tests).
 * frequencies: lighting bands beyond the specular filter's ``l*`` are not determined.
+* truncation: where the model at ``lmax`` does not explain the data the lighting is solved to
+  the filter's band ``brdf_lmax`` and bands ``0..lmax`` reported, marginalised (``internal``).
 
 The joint posterior of the factors is checked where it is widest
 (:func:`~brdfcap.fit.conditioning.laplace_probe`): the factors a non-Gaussian direction carries
@@ -164,7 +166,10 @@ class BilinearFit:
                                       "formula": "first l with ||L_l||/|L_00| < eps (band norm) "
                                                  "(bands beyond the lighting's lmax are never "
                                                  "excited)"}}
-        return {"lighting": lighting_json(self.lighting),
+        lj = lighting_json(self.lighting)
+        lj["internal_lmax"] = self.lighting.internal_lmax
+        lj["internal_reason"] = getattr(self.lighting, "internal_reason", None)
+        return {"lighting": lj,
                 "brdf": {"model": "diffuse+sh-radial-specular",
                          "parameters": {"kd": self.kd.tolist(), "filter": self.filter.tolist()},
                          "stderr": {"kd": fin(self.kd_stderr), "filter": fin(self.filter_stderr)},
@@ -240,7 +245,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                  lmax: int, brdf_lmax: int = 8, variance: torch.Tensor | None = None,
                  rule: str = "gcv", model: str = "phong", s0: float = 32.0,
                  max_iter: int = 50, tol: float = 1e-6, horizon_cut: bool = True,
-                 view: torch.Tensor | None = None, halves: bool = True) -> BilinearFit:
+                 view: torch.Tensor | None = None, halves: bool = True,
+                 internal: bool = True, _floor: int | None = None) -> BilinearFit:
     """Recover lighting ``L``, albedo ``kd`` and specular filter ``f_l`` jointly (module doc).
 
     Parameters
@@ -277,24 +283,56 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
         halves disagree beyond their errors by the Birge ratio (:func:`check_products_halves`;
         ``gauge_invariant["reproducibility"]``). ``False``: left to the caller (problem both
         runs it on its final solve only, after the noise reweighting).
+    internal : bool
+        Solve the lighting to the specular filter's band ``brdf_lmax`` when ``lmax`` is lower
+        (as far as the samples allow, ``(L+1)² ≤ N/2``) and report bands ``0..lmax``, their
+        errors marginalised over the rest (:func:`_restrict`; ``lighting.internal_lmax``):
+        the filter passes those bands, and a lighting cut at ``lmax`` leaves them to alias
+        into the fitted ones (truncation, ``docs/fitting.md``, "Problem 3: ambiguities").
 
     Returns
     -------
     BilinearFit
     """
     f64 = torch.float64
+    if internal:
+        nfin = int((torch.isfinite(radiance).all(-1) & torch.isfinite(normal).all(-1)
+                    & torch.isfinite(reflected).all(-1)).sum())
+        lint = max(lmax, min(brdf_lmax, _sample_band(nfin)))
+        kw = dict(brdf_lmax=brdf_lmax, variance=variance, rule=rule, model=model, s0=s0,
+                  max_iter=max_iter, tol=tol, horizon_cut=horizon_cut, view=view,
+                  halves=halves, internal=False, _floor=lmax)
+        out = fit_bilinear(normal, reflected, radiance, lmax, **{**kw, "halves": False})
+        if lint > lmax and out.adequacy is not None and not out.adequacy["adequate"]:
+            # the model at lmax does not explain the data: solve to the filter's band. Not
+            # otherwise — on the glossy demo (lighting band-limited to l = 2, adequate at
+            # lmax 4) the free bands 5-8 absorbed the radial model's approximation and the
+            # products' coverage fell from 0.94 to 0.90
+            wide = _restrict(fit_bilinear(normal, reflected, radiance, lint, **kw), lmax)
+            wide.lighting.internal_reason = (
+                f"solved to l = {wide.lighting.internal_lmax}: at lmax = {lmax} the model did "
+                f"not explain the data ({out.adequacy['verdict']})")
+            return wide
+        if halves:
+            check_products_halves(out, normal, reflected, radiance, variance, view)
+        return _restrict(out, lmax)
     if horizon_cut:
         kw = dict(lmax=lmax, brdf_lmax=brdf_lmax, rule=rule, model=model, s0=s0,
-                  max_iter=max_iter, tol=tol, horizon_cut=False, halves=False)
+                  max_iter=max_iter, tol=tol, horizon_cut=False, halves=False, internal=False)
         first = fit_bilinear(normal, reflected, radiance, variance=variance, view=view, **kw)
         keep, info = horizon_keep(normal, reflected, first.filter[:, None])
         if keep is not None:
+            # an internal band (above ``_floor``, the one reported) only as far as the
+            # kept samples allow
+            kw["lmax"] = max(lmax if _floor is None else _floor,
+                             min(lmax, _sample_band(int(keep.sum()))))
             try:
                 out = fit_bilinear(normal[keep], reflected[keep], radiance[keep],
                                    variance=None if variance is None else variance[keep],
                                    view=None if view is None else view[keep], **kw)
             except FitError:
                 keep = None
+                kw["lmax"] = lmax
                 info["kept"] = info["of"]
                 info["note"] = ("not cut: too few samples would stay for the bilinear "
                                 "factorisation; the factors may be biased by the rim")
@@ -306,7 +344,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
             return first
         n_all, r_all, _ = drop_nonfinite_directions(normal, reflected, radiance)
         out.prediction = _prediction(n_all, r_all, out.lighting.coefficients, out.kd,
-                                     out.filter, lmax)
+                                     out.filter, out.lighting.lmax)
         out.horizon = info
         if out.adequacy is not None:
             out.adequacy["verdict"] += (f" (judged on the {info['kept']} samples fitted; the "
@@ -673,6 +711,74 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                        adequacy=adequacy, laplace=lap)
 
 
+def _sample_band(n: int) -> int:
+    """Highest lighting band ``L`` an internal solve takes from ``n`` samples: ``(L+1)² ≤ n/2``."""
+    return int(math.isqrt(max(n // 2, 1))) - 1
+
+
+def _restrict_products(gi: dict, lmax: int) -> dict:
+    """Keep the gauge-invariant products of bands ``l ≤ lmax`` (and their covariance block)."""
+    if not gi:
+        return gi
+    keep = [j for j, q in enumerate(gi["quantities"]) if q["l"] <= lmax]
+    if len(keep) == len(gi["quantities"]):
+        return gi
+    ix = torch.tensor(keep, dtype=torch.long)
+    out = dict(gi)
+    out["quantities"] = [gi["quantities"][j] for j in keep]
+    out["touched_by_null_direction"] = [gi["touched_by_null_direction"][j] for j in keep]
+    for key in ("value", "stderr", "determined"):
+        out[key] = gi[key][ix]
+    out["covariance"] = gi["covariance"][ix][:, ix]
+    rp = gi.get("reproducibility")
+    if rp:
+        rows = [r for r in rp["groups"] if r["l"] <= lmax]
+        out["reproducibility"] = {**rp, "groups": rows,
+                                  "groups_widened": sum(not r["reproducible"] for r in rows),
+                                  "widened_by_max": max([r["widened_by"] for r in rows] or [1.0])}
+    return out
+
+
+def _restrict(fit: BilinearFit, lmax: int) -> BilinearFit:
+    """Report bands ``0..lmax`` of a fit solved to a higher lighting band (``internal``).
+
+    The reported coefficients, errors and products are those of the larger model: their
+    covariance is the joint one with the unreported bands free, i.e. marginalised over them.
+    """
+    lt = fit.lighting
+    lint = lt.lmax
+    lt.internal_lmax = lint
+    if lint == lmax:
+        return fit
+    k = (lmax + 1) ** 2
+    lt.internal_coefficients = lt.coefficients
+    lt.coefficients, lt.stderr, lt.determined = (lt.coefficients[:k], lt.stderr[:k],
+                                                 lt.determined[:k])
+    if lt.stderr_unregularised is not None:
+        lt.stderr_unregularised = lt.stderr_unregularised[:k]
+    lt.bands = [r for r in lt.bands if r["l"] <= lmax]
+    if lt.ill_conditioned_from_l is not None and lt.ill_conditioned_from_l > lmax:
+        lt.ill_conditioned_from_l = None
+    lt.lmax = lmax
+    fit.gauge_invariant = _restrict_products(fit.gauge_invariant, lmax)
+    if fit.laplace:
+        fit.laplace["flagged"] = [nm for nm in fit.laplace["flagged"]
+                                  if not nm.startswith("L[") or int(nm[2:].split(",")[0]) < k]
+    ill = lt.ill_conditioned_from_l
+    for a in fit.ambiguities:
+        if a["name"] == "unobserved frequencies":
+            a["resolution"] = (f"lighting bands from l = {ill} on are not determined by the "
+                               "data (flagged per coefficient)" if ill is not None else
+                               "none within lmax")
+    fit.ambiguities.append(
+        {"name": "lighting above lmax (truncation)",
+         "resolution": f"the lighting is solved to l = {lint} (the specular filter's bands, "
+                       f"--brdf-lmax, as far as the samples allow) and bands 0-{lmax} are "
+                       "reported, their errors marginalised over the rest: cut at lmax, the "
+                       "bands the lobe passes above it would alias into the fitted ones"})
+    return fit
+
+
 def _band_sum(lmax: int, lb: int) -> torch.Tensor:
     """Return the band-sum operator ``S`` ``((lmax+1)², lb+1)`` (``S f``: filter per coefficient).
 
@@ -762,7 +868,7 @@ def check_products_halves(fit: BilinearFit, normal, reflected, radiance, varianc
         except FitError:
             gi["reproducibility"] = None
             return
-    ga, gb = parts[0].gauge_invariant, parts[1].gauge_invariant
+    ga, gb = (_restrict_products(p.gauge_invariant, fit.lighting.lmax) for p in parts)
     if len(ga["quantities"]) != len(gi["quantities"]) or \
             len(gb["quantities"]) != len(gi["quantities"]):
         gi["reproducibility"] = None
