@@ -167,8 +167,9 @@ class BilinearFit:
                                                  "(bands beyond the lighting's lmax are never "
                                                  "excited)"}}
         lj = lighting_json(self.lighting)
-        lj["internal_lmax"] = self.lighting.internal_lmax
-        lj["internal_reason"] = getattr(self.lighting, "internal_reason", None)
+        if self.lighting.internal_lmax is not None:
+            lj["internal_lmax"] = self.lighting.internal_lmax
+            lj["internal_reason"] = getattr(self.lighting, "internal_reason", None)
         return {"lighting": lj,
                 "brdf": {"model": "diffuse+sh-radial-specular",
                          "parameters": {"kd": self.kd.tolist(), "filter": self.filter.tolist()},
