@@ -317,18 +317,23 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                 "worst relative residual RMS squared"
             why = (f"at lmax = {lmax} the model did not explain the data ({what} "
                    f"{_excess(out.adequacy):.3g})")
-            if wide.adequacy is None or wide.adequacy["adequate"] or \
+            if wide.lighting.internal_lmax == lmax:  # the rim cut left too few samples
+                out.lighting.internal_reason = (
+                    f"not solved above lmax: {why}; the {(wide.horizon or {}).get('kept')} "
+                    "samples the rim cut keeps allow no band above it ((L+1)^2 <= N/2)")
+            elif wide.adequacy is None or wide.adequacy["adequate"] or \
                     _excess(wide.adequacy) <= WIDE_EXCESS_SHARE * _excess(out.adequacy):
                 wide.lighting.internal_reason = (f"solved to l = {wide.lighting.internal_lmax}: "
                                                  + why)
                 return wide
-            # the bands above lmax do not explain the excess (a wrong lobe, not truncation):
-            # the fit at lmax stands, and says it was tried (the Beckmann demo: chi2/nu 8.7 ->
-            # 6.4 at l = 8, its errors would only widen)
-            out.lighting.internal_reason = (
-                f"not solved above lmax: {why}; solved to l = {wide.lighting.internal_lmax} "
-                f"it still did not ({_excess(wide.adequacy):.3g}), so truncation is not the "
-                "cause")
+            else:
+                # the bands above lmax do not explain the excess (a wrong lobe, not
+                # truncation): the fit at lmax stands, and says it was tried (the Beckmann
+                # demo: chi2/nu 8.7 -> 6.4 at l = 8, its errors would only widen)
+                out.lighting.internal_reason = (
+                    f"not solved above lmax: {why}; solved to l = "
+                    f"{wide.lighting.internal_lmax} it still did not "
+                    f"({_excess(wide.adequacy):.3g}), so truncation is not the cause")
         if halves:
             check_products_halves(out, normal, reflected, radiance, variance, view)
         return _restrict(out, lmax)

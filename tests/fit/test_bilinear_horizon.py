@@ -191,6 +191,11 @@ def test_lighting_above_lmax_is_solved_internally_when_the_model_cannot_explain_
     g = fit_bilinear(n, r, bn, 6, brdf_lmax=6, variance=var, halves=False)
     assert g.adequacy["adequate"] and g.lighting.internal_lmax == 6 and \
         not any(a["name"] == "lighting above lmax (truncation)" for a in g.ambiguities)
+    # too few samples after the rim cut (150 at 10% noise: 33 kept) to solve above lmax: said
+    spec, light, n, r, bn, var = _scene(150, 0.1, seed=10)
+    f = fit_bilinear(n, r, bn, 4, brdf_lmax=6, variance=var, halves=False)
+    assert f.lighting.internal_lmax == 4 and not f.adequacy["adequate"]
+    assert "samples the rim cut keeps allow no band above it" in f.lighting.internal_reason
 
 
 def test_a_lobe_the_radial_model_cannot_fit_is_not_solved_above_lmax():
