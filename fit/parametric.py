@@ -235,6 +235,12 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
             lambda t: _scales(*basis(math.exp(t)), b, w)[1],
             bounds=(a_, b_), method="bounded", options={"xatol": xatol})
         theta = torch.tensor(math.exp(res.x), dtype=f64)
+        if coarse is not None:
+            # the subset's profile is not on the samples' scale: its other valleys are
+            # re-evaluated on all samples, and those points are the check's grid
+            grid_costs = [(math.exp(float(grid[i])),
+                           _scales(*basis(math.exp(float(grid[i]))), b, w)[1])
+                          for i in _other_valleys(cost, j, reach)]
     cols, off = basis(theta)
     x, rss = _scales(cols, off, b, w)  # x (J, C)
     nlin = cols.shape[-1]
@@ -267,8 +273,8 @@ def _variable_projection(model: str, proto: BRDFModel, basis, shape_derivative, 
         shape_check = shape_profile_check(
             lambda t: _scales(*basis(t), b, w)[1], float(theta), rss, float(se[-1]), sig2,
             (float(proto.shape_bounds[0]), float(proto.shape_bounds[1])),
-            # the bracketing grid's profile, where it was computed on these samples
-            grid=None if coarse is not None or grid_costs is None else grid_costs)
+            # the bracketing grid's profile (a subset's other valleys re-evaluated on all)
+            grid=grid_costs)
         if not shape_check["gaussian"]:
             half = shape_check["half_width"]
             new = half / 1.96 if math.isfinite(half) else math.inf
@@ -312,6 +318,13 @@ SHAPE_RATIO = (0.5, 2.0)
 #: per step), refined by :data:`PROFILE_BISECTIONS` halvings (to 2e-7 in ``log θ``).
 PROFILE_STEPS = 4
 PROFILE_BISECTIONS = 20
+
+
+def _other_valleys(cost: list, j: int, reach: int) -> list[int]:
+    """Grid indices of the profile's local minima other than the chosen one (``j ± reach``)."""
+    n = len(cost)
+    return [i for i in range(n) if abs(i - j) > reach
+            and (i == 0 or cost[i] <= cost[i - 1]) and (i == n - 1 or cost[i] <= cost[i + 1])]
 
 
 def shape_profile_check(rss_at, theta: float, rss0: float, se: float, sig2: float,

@@ -76,3 +76,62 @@ def test_few_noisy_samples_of_a_narrow_lobe():
     chk = f.extra["shape_check"]
     assert chk["gaussian"] and SHAPE_RATIO[0] <= chk["ratio"] <= SHAPE_RATIO[1]
     assert f.to_json()["shape_check"]["gaussian"]
+
+
+def test_a_second_valley_seen_only_by_the_subset_grid_is_checked_on_all_samples():
+    """The SH-lighting path brackets the shape on a subset of the samples (``coarse``) and runs
+    the Brent search on all of them; the subset's profile is on another scale, so before
+    session 21 its other valleys were not checked at all. A toy model whose prediction is
+    periodic in ``log θ`` (``cos(2π k_i log θ / P)``), with the period ``P`` ten grid steps, has
+    equally deep valleys on the grid ten steps apart: the subset's other valleys are
+    re-evaluated on all samples, reported (``other_minima``) and the interval is then not the
+    Gauss–Newton one. A single valley (the same samples, a period wider than the range) passes.
+    """
+    from brdfcap.fit.parametric import _prototype, _variable_projection
+
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    k = torch.randint(1, 4, (n,), generator=g).to(F64)
+    lo, points = 1.0, 48
+    step = 0.26  # grid step in log θ (48 points: log(hi/lo) / 0.25 >= 48 keeps all of them)
+    hi = lo * math.exp(step * (points - 1))
+
+    def run(period):
+        theta0 = lo * math.exp(step * 12)
+
+        def feat(t):
+            return torch.cos(2 * math.pi * k * math.log(t) / period)
+
+        def basis_on(ix):
+            def basis(t):
+                t = float(t)
+                cols = torch.stack([torch.ones(ix.numel(), dtype=F64), feat(t)[ix]], -1)
+                return cols[:, None, :], torch.zeros(ix.numel(), 1, dtype=F64)
+            return basis
+
+        def shape_derivative(t, x):
+            t = float(t)
+            d = -2 * math.pi * k / period * torch.sin(2 * math.pi * k * math.log(t) / period) / t
+            return (float(x[1, 0]) * d)[:, None]
+
+        sd = 0.05
+        b = (0.5 + feat(theta0) + sd * torch.randn(n, generator=g, dtype=F64))[:, None]
+        w = torch.full_like(b, 1.0 / sd ** 2)
+        sub = torch.arange(0, n, 4)
+        fit = _variable_projection("phong", _prototype("phong", 1), basis_on(torch.arange(n)),
+                                   shape_derivative, b, w, True, "toy", (lo, hi), False,
+                                   coarse=(basis_on(sub), b[sub], w[sub]), grid_points=points)
+        return fit, theta0
+
+    fit, theta0 = run(10 * step)
+    chk = fit.extra["shape_check"]
+    found = float(fit.values["s"])
+    dist = abs(math.log(found / theta0)) % (10 * step)  # on one of the valleys
+    assert min(dist, 10 * step - dist) < 0.01
+    assert chk["other_minima"] >= 2 and not chk["gaussian"]
+    lo95, hi95 = chk["interval_95"]
+    assert hi95 / lo95 > math.exp(10 * step) / 1.01  # it spans at least two valleys
+    fit, theta0 = run(2 * step * (points - 1))  # one valley in the range: the check passes
+    chk = fit.extra["shape_check"]
+    assert abs(math.log(float(fit.values["s"]) / theta0)) < 0.05
+    assert chk["other_minima"] == 0 and chk["gaussian"]
