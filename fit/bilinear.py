@@ -169,7 +169,7 @@ class BilinearFit:
         lj = lighting_json(self.lighting)
         if self.lighting.internal_lmax is not None:
             lj["internal_lmax"] = self.lighting.internal_lmax
-            lj["internal_reason"] = getattr(self.lighting, "internal_reason", None)
+            lj["internal_reason"] = self.lighting.internal_reason
         return {"lighting": lj,
                 "brdf": {"model": "diffuse+sh-radial-specular",
                          "parameters": {"kd": self.kd.tolist(), "filter": self.filter.tolist()},
@@ -712,10 +712,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                           "that, the range's spread is added to its error"
                         if null_dirs else "none found (joint normal matrix full rank)"),
          "null_directions": [[f"{kind}:{l}" for kind, l in d] for d in null_dirs]},
-        {"name": "unobserved frequencies",
-         "resolution": f"lighting bands from l = {ill} on are not determined by the data "
-                       f"(flagged per coefficient)" if ill is not None else
-                       "none within lmax"},
+        {"name": "unobserved frequencies", "resolution": _unobserved(ill)},
     ]
     gi = _gauge_invariant(sol_l.coefficients, f, kd, band, lmax, lb, hinv * sig2, nulls,
                           _product_resolution(yn, yr, w, band, lmax, lb))
@@ -745,6 +742,13 @@ def _excess(adequacy: dict) -> float:
     if chi2:
         return float(max(chi2))
     return float(max(adequacy.get("residual_rel_rms") or [0.0])) ** 2
+
+
+def _unobserved(ill: int | None) -> str:
+    """Say what the "unobserved frequencies" ambiguity resolves to, first ill band ``ill``."""
+    return ("none within lmax" if ill is None else
+            f"lighting bands from l = {ill} on are not determined by the data (flagged per "
+            "coefficient)")
 
 
 def _sample_band(n: int) -> int:
@@ -803,9 +807,7 @@ def _restrict(fit: BilinearFit, lmax: int) -> BilinearFit:
     ill = lt.ill_conditioned_from_l
     for a in fit.ambiguities:
         if a["name"] == "unobserved frequencies":
-            a["resolution"] = (f"lighting bands from l = {ill} on are not determined by the "
-                               "data (flagged per coefficient)" if ill is not None else
-                               "none within lmax")
+            a["resolution"] = _unobserved(ill)
     fit.ambiguities.append(
         {"name": "lighting above lmax (truncation)",
          "resolution": f"the lighting is solved to l = {lint} (the specular filter's bands, "

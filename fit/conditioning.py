@@ -1442,16 +1442,13 @@ def laplace_probe(cost_at, theta: torch.Tensor, c_opt: float, H: torch.Tensor,
     (:data:`LAPLACE_SHARE` of its variance) is flagged.
 
     Returns ``ratios`` (per direction), ``valid`` (per direction),
-    ``touched`` ``(G,)`` bool, ``directions`` (how many were probed) and ``failing``: each
-    failed direction scaled to one standard deviation (``sqrt(λ) v``), for quantities derived
-    from the parameters (a derived ``q`` with gradient ``J`` is carried by ``u`` when ``(J u)²``
-    is :data:`LAPLACE_SHARE` of its variance or more).
+    ``touched`` ``(G,)`` bool, ``directions`` (how many were probed).
     """
     g = cov.shape[0]
     ev, V = torch.linalg.eigh(0.5 * (cov + cov.T))
     var = cov.diagonal().clamp_min(1e-300)
     touched = torch.zeros(g, dtype=torch.bool)
-    ratios, valid, failing = [], [], []
+    ratios, valid = [], []
     for j in range(g - 1, max(g - 1 - k, -1), -1):
         if not float(ev[j]) > 0:
             continue
@@ -1467,6 +1464,4 @@ def laplace_probe(cost_at, theta: torch.Tensor, c_opt: float, H: torch.Tensor,
         valid.append(ok)
         if not ok:
             touched |= float(ev[j]) * V[:, j] ** 2 / var > LAPLACE_SHARE
-            failing.append(math.sqrt(float(ev[j])) * V[:, j])
-    return {"ratios": ratios, "valid": valid, "touched": touched, "directions": len(ratios),
-            "failing": failing}
+    return {"ratios": ratios, "valid": valid, "touched": touched, "directions": len(ratios)}

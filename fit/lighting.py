@@ -56,6 +56,8 @@ class SHFit:
     covariance: torch.Tensor | None = None  # (C, K, K) posterior covariance (after widening)
     posterior_stderr: torch.Tensor | None = None  # (K, C) finite, sqrt(diag covariance)
     internal_lmax: int | None = None
+    #: problem 3: why the lighting was (or was not) solved above lmax (``fit.bilinear``)
+    internal_reason: str | None = None
     #: the internal solution (bands 0..internal_lmax) and its residual b - A x̂ per input sample
     #: ((N, C), 0 where a sample had no weight): the model the adequacy verdict judges
     internal_coefficients: torch.Tensor | None = None
