@@ -59,6 +59,7 @@ from .conditioning import (
     laplace_probe,
     noise_level,
     residual_adequacy,
+    rule_out_truncation,
 )
 from .inverse_brdf import horizon_keep, horizon_lines
 from .lighting import SHFit
@@ -88,6 +89,14 @@ NULL_COMPONENT_MIN = 1e-6
 #: the null direction exceeds this (:func:`_gauge_invariant`): computed null directions are
 #: accurate to ~1e-5, a product an ambiguity moves has a cosine of order 1.
 PRODUCT_NULL_COSINE = 1e-3
+
+#: Why a filter band or ``kd`` has no interval (the band row's ``reason``, ``brdf.
+#: undetermined_reason``), where it is not the design's: an exact ambiguity moves it ...
+AMBIGUITY_REASON = ("moves with an ambiguity (a null direction of the joint problem over its "
+                    "admissible range): only the gauge-invariant products are determined")
+#: ... or a direction of the posterior that is not Gaussian carries it (Laplace check).
+LAPLACE_REASON = ("the posterior is not Gaussian along a direction that carries it (Laplace "
+                  "check, Bates & Watts 1980): no interval")
 
 
 def _gauge_range(v: torch.Tensor, kd: torch.Tensor, f: torch.Tensor, off: int, lb: int,
@@ -144,6 +153,8 @@ class BilinearFit:
     #: posterior: ``directions``, ``ratios``, ``valid``, ``flagged`` (parameters it flagged;
     #: the gauge-invariant products are not: the images are linear in them)
     laplace: dict | None = None
+    #: why ``kd`` has no interval (:data:`AMBIGUITY_REASON`, :data:`LAPLACE_REASON`), or None
+    kd_reason: str | None = None
 
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
@@ -178,6 +189,8 @@ class BilinearFit:
                          else self.filter_determined.tolist(),
                          "bands": self.filter_bands,
                          "ill_conditioned_from_l": self.filter_ill_conditioned_from_l,
+                         "undetermined_reason": {"kd": self.kd_reason} if self.kd_reason
+                         else {},
                          "definition": FILTER_DEFINITION,
                          "source": "bilinear factorisation (alternating least squares)",
                          "uncertainty_note": "standard errors of kd and the filter are "
@@ -334,6 +347,9 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                     f"not solved above lmax: {why}; solved to l = "
                     f"{wide.lighting.internal_lmax} it still did not "
                     f"({_excess(wide.adequacy):.3g}), so truncation is not the cause")
+                rule_out_truncation(out.adequacy, f"solved to l = {wide.lighting.internal_lmax}"
+                                    f", {what} {_excess(out.adequacy):.3g} -> "
+                                    f"{_excess(wide.adequacy):.3g}")
         if halves:
             check_products_halves(out, normal, reflected, radiance, variance, view)
         return _restrict(out, lmax)
@@ -666,6 +682,32 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
             f_se[l] = math.inf
             sol_b.determined[l - 1] = False
     kd_se = torch.where(lap_t[nch * k + lb:], torch.full_like(kd_se, math.inf), kd_se)
+    # why a filter band or kd has no interval, where the design does not say it (band rows,
+    # results.json, the report's first screen)
+    f_why = {}
+    for l in range(1, lb + 1):
+        i = off + l - 1
+        if not bool(seen[i]):
+            f_why[l] = (f"not excited: no fitted lighting band carries it (the lighting is "
+                        f"solved to l = {lmax}; raise --lmax to see it)")
+        elif l in amb_f and bool(touched_p[i]):
+            f_why[l] = AMBIGUITY_REASON
+        elif bool(lap_t[i]):
+            f_why[l] = LAPLACE_REASON
+    kd_reason = None
+    kd_inf = ~torch.isfinite(kd_se)
+    if bool(kd_inf.any()):
+        names = "RGB"[:nch] if nch == 3 else [str(c) for c in range(nch)]
+        which = "" if bool(kd_inf.all()) else \
+            " (" + ", ".join(names[c] for c in range(nch) if bool(kd_inf[c])) + ")"
+        if amb_kd and bool((touched_p[off + lb:] & kd_inf).any()):
+            kd_reason = ("moves with the diffuse/specular split of the DC term, an ambiguity: "
+                         "only (kd + f_0) L_00 is determined")
+        elif bool((lap_t[off + lb:] & kd_inf).any()):
+            kd_reason = LAPLACE_REASON
+        else:
+            kd_reason = "no sample constrains it"
+        kd_reason += which
     # band statistics of the filter: one coefficient per band, reference f_0 = 1
     fsol = LinearSolution(
         coefficients=torch.cat([torch.ones(1, 1, dtype=f64), sol_b.coefficients[:lb]]),
@@ -682,7 +724,8 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     # on the joint errors — a band within 10% of its own value at 99%, or bounded below 1% of
     # f_0 = 1; not "error below f_0", which called bands of SNR 1 determined (issue 12)
     reached = fsol.determined & torch.isfinite(f_se)[:, None]
-    f_rows, f_ill, f_det, _ = filter_band_rows(fsol, f[:, None], f_se[:, None], reached)
+    f_rows, f_ill, f_det, _ = filter_band_rows(fsol, f[:, None], f_se[:, None], reached,
+                                               why=f_why)
     f_det = f_det[:, 0]
     fk = S @ f
     pred = _predict(yn, yr, fk, L, kd)
@@ -726,7 +769,7 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                        filter_bands=f_rows, filter_ill_conditioned_from_l=f_ill,
                        iterations=it, converged=converged, history=history, prediction=pred,
                        ambiguities=amb, gauge_invariant=gi, filter_determined=f_det,
-                       adequacy=adequacy, laplace=lap)
+                       adequacy=adequacy, laplace=lap, kd_reason=kd_reason)
 
 
 #: The fit solved above lmax replaces the one at lmax when it explains the data or leaves at most

@@ -37,6 +37,7 @@ with the noise level ``ε = stderr(x_0)/|x_0|`` (the relative error of the DC co
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import torch
 from scipy.special import gammaincinv, ndtr, ndtri
@@ -343,7 +344,8 @@ def _design_row(sol: LinearSolution, l: int, sel: torch.Tensor, spanned: torch.T
 
 
 def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Tensor,
-                     reached: torch.Tensor, aliased: frozenset | set = frozenset()
+                     reached: torch.Tensor, aliased: frozenset | set = frozenset(),
+                     why: Mapping[int, str] | None = None
                      ) -> tuple[list[dict], int | None, torch.Tensor, torch.Tensor]:
     """Band rows of a radial BRDF filter under :data:`FILTER_DEFINITION` (problems 2 and 3).
 
@@ -357,6 +359,10 @@ def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Ten
         ``(lmax+1, C)`` bool: the samples span the band (and no listed ambiguity takes it).
     aliased : set
         Bands flagged as one of an aliased odd/even pair (reason says so).
+    why : mapping, optional
+        Band ``l`` → why it is not reached, where the caller knows better than the design
+        (problem 3: an ambiguity's null direction or the Laplace check takes it, or no fitted
+        lighting band excites it); the row's ``reason`` then says that.
 
     With split halves in ``sol`` (``solve_wls(split=...)``) each band first goes through the
     model-free check of :func:`band_statistics`: halves that disagree beyond their errors
@@ -399,8 +405,9 @@ def filter_band_rows(sol: LinearSolution, value: torch.Tensor, stderr: torch.Ten
         row["determined"] = bool(determined[l].all()) and not bnd
         row["bounded"] = bnd
         row["ill_conditioned"] = not bool(determined[l].all())
-        row["reason"] = filter_reason(ok, bool(precise[l].all()), bnd, row["error_bound"],
-                                      l in aliased)
+        row["reason"] = (why[l] if why and l in why and not ok else
+                         filter_reason(ok, bool(precise[l].all()), bnd, row["error_bound"],
+                                       l in aliased))
         if rp["checked"] and not rp["reproducible"]:
             row["reason"] += (f"; halves differ by chi2 {rp['chi2']:.3g} > {rp['limit']:.3g} "
                               f"({rp['dof']} dof): errors widened {rp['widened_by']:.3g}x")
@@ -1260,6 +1267,30 @@ VERDICT_HALVES = ("the model does not explain the data (see likely_causes); its 
                   "bound on what the model's error adds")
 
 
+#: The adequacy verdict's catch-all cause (:func:`model_adequacy`), listed whenever the model
+#: does not explain the data; a fit that has tested one of its causes replaces it
+#: (:func:`rule_out_truncation`).
+GENERIC_CAUSE = ("lighting above the internal bandwidth (truncation), a wrong BRDF or its "
+                 "parameters, shadows and interreflections")
+
+
+def rule_out_truncation(adequacy: dict, evidence: str) -> None:
+    """Replace the catch-all cause by one without truncation, where a fit has tested it.
+
+    In place on an adequacy dict of :func:`model_adequacy` / :func:`residual_adequacy`:
+    ``evidence`` says what was tried (problem 3: the lighting solved to the specular filter's
+    band left the excess; ``fit.bilinear``), and the remaining causes are named instead — a
+    reader of the report should not be sent to raise ``--lmax`` when that was tried.
+    """
+    causes = adequacy.get("likely_causes")
+    if not causes or GENERIC_CAUSE not in causes:
+        return
+    causes[causes.index(GENERIC_CAUSE)] = (
+        f"not truncation ({evidence}): a BRDF the model cannot represent or wrong parameters "
+        "(problem 3's filter is radially symmetric about the reflected direction, Ramamoorthi "
+        "& Hanrahan 2001 eqs. 11-12; a microfacet lobe is not), shadows and interreflections")
+
+
 def residual_adequacy(b: torch.Tensor, pred: torch.Tensor, variance: torch.Tensor | None, *,
                       view: torch.Tensor | None = None, n_params: int = 0,
                       widen: bool = False) -> dict:
@@ -1381,8 +1412,7 @@ def _adequacy(resid: torch.Tensor, wres: torch.Tensor, chi2_t: torch.Tensor, dof
                           "BRDF")
         elif math.isfinite(skew) and skew < -1.0:
             causes.append("negative residual tail: cast shadows or occlusion the model lacks")
-        causes.append("lighting above the internal bandwidth (truncation), a wrong BRDF or "
-                      "its parameters, shadows and interreflections")
+        causes.append(GENERIC_CAUSE)
     if ok and mild:
         verdict = ("the model explains the data up to a small excess over the noise model "
                    "(no structure in the residual); " + (

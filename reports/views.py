@@ -193,9 +193,11 @@ def headline(results: dict) -> dict:
     errs = _param_errors(brdf)
     shown = [k for k in _HEAD_PARAMS if k in params and (_is_num(params[k])
                                                          or is_number_list(params[k]))]
+    why = brdf.get("undetermined_reason") or {}
     if shown and errs:
         rows.append({"quantity": f"BRDF ({model})",
                      "value": "; ".join(f"{k} {fmt_rgb_pm(params[k], errs.get(k))}"
+                                        + (f" ({why[k]})" if why.get(k) else "")
                                         for k in shown),
                      "measured": "", "predicted": "", "cite": ""})
     bsh = brdf.get("sh") if isinstance(brdf.get("sh"), dict) else None
@@ -204,13 +206,53 @@ def headline(results: dict) -> dict:
         first = (bsh or {}).get("ill_conditioned_from_l", bc.get("measured"))
         pred = bc.get("predicted")
         rows.append({"quantity": "BRDF, SH-domain filter ρ̂_l",
-                     "value": f"{len((bsh or {}).get('bands') or [])} bands" if bsh else "",
+                     "value": f"{len((bsh or {}).get('bands') or [])} bands" if bsh
+                     else _radial_filter_text(brdf),
                      "measured": _measured_text(first),
                      "predicted": _prediction_text(pred) if pred else "—",
                      "cite": (pred or {}).get("formula", "").replace(
                          "R&H 2001", "Ramamoorthi & Hanrahan (2001)") if pred else ""})
     return {"measured": "; ".join(what) + ".", "rows": rows, "verdict": _verdict(results),
             "causes": adequacy_causes(results)}
+
+
+_SUB = str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉")
+
+
+def _radial_filter_text(brdf: dict) -> str:
+    """Problem 3's specular filter ``f_l`` (``f_0 = 1``, the gauge) in one line, band by band.
+
+    A band with an error is ``value ± error``; one an ambiguity moves is marked ``*`` (only
+    its products with the lighting are determined, the note says so); one no fitted lighting
+    band excites is counted, not printed; any other without an error is "not determined".
+    """
+    f = (brdf.get("parameters") or {}).get("filter")
+    if not is_number_list(f) or len(f) < 2:
+        return ""
+    se = list((brdf.get("stderr") or {}).get("filter") or []) + [None] * len(f)
+    reasons = {r.get("l"): str(r.get("reason") or "") for r in brdf.get("bands") or []
+               if isinstance(r, dict)}
+    parts, unexcited, starred = ["f₀ = 1 (the gauge)"], [], False
+    for l in range(1, len(f)):
+        name, why = f"f{str(l).translate(_SUB)}", reasons.get(l, "")
+        if why.startswith("not excited"):
+            unexcited.append(l)
+        elif _is_num(se[l]) and math.isfinite(se[l]):
+            parts.append(f"{name} {fmt_pm(f[l], se[l])}")
+        elif why.startswith("moves with an ambiguity"):
+            parts.append(f"{name} {fmt_num(f[l], 3)}*")
+            starred = True
+        elif why.startswith("the posterior is not Gaussian"):
+            parts.append(f"{name} {fmt_num(f[l], 3)} (no interval: Laplace check)")
+        else:
+            parts.append(f"{name} {fmt_num(f[l], 3)} (not determined)")
+    text = ", ".join(parts)
+    if unexcited:
+        text += (f"; bands {unexcited[0]}–{unexcited[-1]}" if len(unexcited) > 1
+                 else f"; band {unexcited[0]}") + " not excited by the fitted lighting"
+    if starred:
+        text += "; * moves with an ambiguity: only f_l·L_lm is determined"
+    return text
 
 
 #: BRDF parameters named on the first screen, in this order (when present and fitted).
@@ -243,7 +285,8 @@ def brdf_parameter_rows(brdf: dict) -> list[tuple[str, str]]:
                 f"l = {i}: " + ("not determined" if a is None else fmt_pm(a, e[i]))
                 for i, a in enumerate(v))))
         elif _is_num(v) or is_number_list(v):
-            rows.append((k, fmt_rgb_pm(v, errs.get(k))))
+            why = (brdf.get("undetermined_reason") or {}).get(k)
+            rows.append((k, fmt_rgb_pm(v, errs.get(k)) + (f" ({why})" if why else "")))
         elif isinstance(v, str):
             rows.append((k.replace("_", " "), v))
         elif isinstance(v, dict):

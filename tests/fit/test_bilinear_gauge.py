@@ -15,7 +15,7 @@ import math
 
 import pytest
 import torch
-from brdfcap.fit.bilinear import fit_bilinear
+from brdfcap.fit.bilinear import AMBIGUITY_REASON, fit_bilinear
 from brdfcap.fit.brdf_models import BRDFSpec, diffuse_filter, phong_sh_filter
 from brdfcap.fit.sh import band_of_index
 
@@ -69,6 +69,16 @@ def test_gauge_invariant_products_inside_their_intervals(phong_reference_samples
     assert dc_split and "lighting:0" in dc_split[0]
     assert not bool(fit.lighting.determined[band == 0].any())
     assert torch.isinf(fit.filter_stderr[lmax + 1:]).all()
+    # each band and kd without an interval says why, in the band row and in results.json
+    rows = {r["l"]: r["reason"] for r in fit.filter_bands}
+    assert all(rows[l].startswith("not excited") for l in range(lmax + 1, brdf_lmax + 1))
+    moved = {l for d in fit.to_results()["ambiguities"][2]["null_directions"] for x in d
+             if x.startswith("filter:") for l in [int(x.split(":")[1])]}
+    assert moved and all(rows[l] == AMBIGUITY_REASON for l in moved), (moved, rows)
+    assert not any(rows[l].startswith("not reached") for l in range(1, brdf_lmax + 1))
+    assert torch.isinf(fit.kd_stderr).all()
+    why = fit.to_results()["brdf"]["undetermined_reason"]["kd"]
+    assert why.startswith("moves with the diffuse/specular split")
 
 
 def test_only_coefficients_an_ambiguity_moves_are_flagged():

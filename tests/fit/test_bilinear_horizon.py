@@ -17,6 +17,7 @@ import pytest
 import torch
 from brdfcap.fit.bilinear import fit_bilinear
 from brdfcap.fit.brdf_models import BRDFSpec, phong_sh_filter
+from brdfcap.fit.conditioning import GENERIC_CAUSE
 from brdfcap.fit.filters import lambertian_filter
 
 from brdfcap.testing import random_lighting, render_reference, unit, views_above
@@ -223,3 +224,8 @@ def test_a_lobe_the_radial_model_cannot_fit_is_not_solved_above_lmax():
     assert reason.startswith("not solved above lmax") and "truncation is not the cause" in reason
     assert any(line.startswith("Lighting above lmax: not solved") for line in f.summary())
     assert not any(a["name"] == "lighting above lmax (truncation)" for a in f.ambiguities)
+    # the adequacy verdict does not send the reader to raise lmax: the catch-all cause that
+    # names truncation is replaced by one that says it was tried
+    causes = f.adequacy["likely_causes"]
+    assert GENERIC_CAUSE not in causes
+    assert any(c.startswith("not truncation (solved to l = 6") for c in causes), causes

@@ -77,3 +77,32 @@ def test_the_truth_headline_is_the_largest_z_of_every_brdf_parameter():
                    {"parameter": "f0", "recovered": [0.5] * 3, "stderr": [1e-4] * 3,
                     "true": [0.5] * 3, "z": [-0.85, -1.5, None]}]}
     assert truth_rows(gt, {})["headline"] == "BRDF parameters within 1.5 std. errors"
+
+
+def test_problem_3s_filter_and_kd_say_why_they_have_no_error():
+    """``--problem both``: the first screen's filter row was empty ("ρ̂_l: ;" in the summary)
+    and kd showed bare values. Now every filter band is listed — with its error, marked as
+    moved by an ambiguity, or counted as not excited — and kd carries the fit's reason.
+    """
+    from brdfcap.fit.bilinear import AMBIGUITY_REASON, LAPLACE_REASON
+
+    res = _results(False)
+    res["fit"]["problem"] = "both"
+    bands = [{"l": 0, "reason": "determined"}, {"l": 1, "reason": AMBIGUITY_REASON},
+             {"l": 2, "reason": "determined"}, {"l": 3, "reason": LAPLACE_REASON}]
+    bands += [{"l": l, "reason": "not excited: no fitted lighting band carries it"}
+              for l in (4, 5, 6)]
+    kd_why = "moves with the diffuse/specular split of the DC term, an ambiguity"
+    res["brdf"] = {"model": "diffuse+sh-radial-specular",
+                   "parameters": {"kd": [0.6, 0.5, 0.4],
+                                  "filter": [1.0, 0.94, 0.72, 0.17, 0.0, 0.0, 0.0]},
+                   "stderr": {"kd": [None] * 3,
+                              "filter": [0.0, None, 0.031, None, None, None, None]},
+                   "bands": bands, "undetermined_reason": {"kd": kd_why}}
+    res["conditioning"] = {"brdf": {"measured": 1, "predicted": None}}
+    rows = {r["quantity"]: r["value"] for r in headline(res)["rows"]}
+    f = rows["BRDF, SH-domain filter ρ̂_l"]
+    assert f.startswith("f₀ = 1 (the gauge), f₁ 0.94*, f₂ 0.720 ± 0.031"), f
+    assert "f₃ 0.17 (no interval: Laplace check)" in f
+    assert "bands 4–6 not excited" in f and "only f_l·L_lm is determined" in f
+    assert rows["BRDF (diffuse+sh-radial-specular)"].endswith(f"({kd_why})")
