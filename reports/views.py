@@ -19,7 +19,7 @@ from brdfcap.fit.solve import NO_NOISE_MODEL
 
 from .numbers import fmt_band, fmt_num, fmt_pm, fmt_rgb, fmt_rgb_pm
 
-__all__ = ["headline", "brdf_parameter_rows", "conditioning_rows", "truth_comparison",
+__all__ = ["headline", "band_tally", "brdf_parameter_rows", "conditioning_rows", "truth_comparison",
            "gauge_truth_text",
            "rh_citation", "band_rows", "is_number_list", "truth_rows", "read_truth",
            "check_rows", "gauge_table", "lmax_suggestion"]
@@ -201,13 +201,22 @@ def headline(results: dict) -> dict:
                                         for k in shown),
                      "measured": "", "predicted": "", "cite": ""})
     bsh = brdf.get("sh") if isinstance(brdf.get("sh"), dict) else None
+    iso = brdf.get("isotropic") if isinstance(brdf.get("isotropic"), dict) else None
     bc = cond.get("brdf") or {}
     if bsh or bc:
-        first = (bsh or {}).get("ill_conditioned_from_l", bc.get("measured"))
+        first = (bsh or iso or {}).get("ill_conditioned_from_l", bc.get("measured"))
         pred = bc.get("predicted")
-        rows.append({"quantity": "BRDF, SH-domain filter ρ̂_l",
-                     "value": f"{len((bsh or {}).get('bands') or [])} bands" if bsh
-                     else _radial_filter_text(brdf),
+        if bsh:
+            value = band_tally(bsh.get("bands"))
+        elif iso:
+            lm, pm = iso.get("lmax", params.get("lmax")), iso.get("pmax", params.get("pmax"))
+            value = (f"l ≤ {fmt_num(lm)}, p ≤ {fmt_num(pm)} (R&H 2001 eq. 16), "
+                     + band_tally(iso.get("bands")))
+        else:
+            value = _radial_filter_text(brdf)
+        rows.append({"quantity": "BRDF, SH coefficients ρ̂_lpq" if iso and not bsh
+                     else "BRDF, SH-domain filter ρ̂_l",
+                     "value": value,
                      "measured": _measured_text(first),
                      "predicted": _prediction_text(pred) if pred else "—",
                      "cite": (pred or {}).get("formula", "").replace(
@@ -217,6 +226,45 @@ def headline(results: dict) -> dict:
 
 
 _SUB = str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉")
+
+#: A band row's verdict in a word (:func:`band_tally`), from its flags, else its ``reason``.
+_TALLY = (("aliased", "aliased (odd/even pair)"), ("imprecise", "imprecise"),
+          ("set by the", "set by the prior"), ("not reached", "not reached"),
+          ("not resolved", "not reached"), ("not excited", "not excited"),
+          ("moves with an ambiguity", "moved by an ambiguity"))
+
+
+def band_tally(bands) -> str:
+    """Band rows' verdicts in one line: ``9 bands: l = 2 determined; l = 0–1 imprecise; …``.
+
+    ``determined`` and ``bounded`` (≈ 0) from the row's flags; the rest by the first words of
+    its ``reason`` (:data:`_TALLY`), else "not determined". Consecutive bands are written as a
+    range.
+    """
+    rows = [b for b in bands or [] if isinstance(b, dict) and isinstance(b.get("l"), int)]
+    if not rows:
+        return ""
+    groups: dict[str, list[int]] = {}
+    for b in rows:
+        if b.get("bounded"):
+            kind = "bounded (≈ 0)"
+        elif b.get("determined"):
+            kind = "determined"
+        else:
+            why = str(b.get("reason") or "")
+            kind = next((w for key, w in _TALLY if why.startswith(key)), "not determined")
+        groups.setdefault(kind, []).append(b["l"])
+
+    def ranges(ls):
+        out, start = [], ls[0]
+        for a, b in zip(ls, ls[1:] + [None]):
+            if b != a + 1:
+                out.append(str(start) if start == a else f"{start}–{a}")
+                start = b
+        return ", ".join(out)
+
+    head = f"{len(rows)} band{'' if len(rows) == 1 else 's'}: "
+    return head + "; ".join(f"l = {ranges(ls)} {kind}" for kind, ls in groups.items())
 
 
 def _radial_filter_text(brdf: dict) -> str:

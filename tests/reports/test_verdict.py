@@ -106,3 +106,33 @@ def test_problem_3s_filter_and_kd_say_why_they_have_no_error():
     assert "f₃ 0.17 (no interval: Laplace check)" in f
     assert "bands 4–6 not excited" in f and "only f_l·L_lm is determined" in f
     assert rows["BRDF (diffuse+sh-radial-specular)"].endswith(f"({kd_why})")
+
+
+def test_the_filter_rows_of_problems_brdf_and_brdf_isotropic_tally_their_bands():
+    """The first screen said "9 bands" (problem brdf) or nothing at all (brdf-isotropic, whose
+    summary read "ρ̂_l: ;"): each now tallies its bands' verdicts, consecutive bands as ranges.
+    """
+    from brdfcap.reports.views import band_tally
+
+    bands = [{"l": 0, "determined": False, "reason": "imprecise: error up to 27%"},
+             {"l": 1, "determined": False, "reason": "imprecise: error up to 15%"},
+             {"l": 2, "determined": True, "reason": "determined"},
+             {"l": 3, "determined": True, "bounded": True, "reason": "determined: below 1%"},
+             {"l": 4, "determined": False, "reason": "aliased: the samples see one side"},
+             {"l": 5, "determined": False, "reason": "not reached: unregularised resolution"},
+             {"l": 6, "determined": False, "reason": "not resolved: some coefficient's"}]
+    assert band_tally(bands) == ("7 bands: l = 0–1 imprecise; l = 2 determined; l = 3 bounded "
+                                 "(≈ 0); l = 4 aliased (odd/even pair); l = 5–6 not reached")
+    assert band_tally([]) == "" and band_tally(None) == ""
+    res = _results(True)
+    res["brdf"] = {"model": "sh-radial", "parameters": {},
+                   "sh": {"bands": bands[:3], "ill_conditioned_from_l": 0}}
+    res["conditioning"] = {"brdf": {"measured": 0}}
+    row = next(r for r in headline(res)["rows"] if r["quantity"].startswith("BRDF, SH"))
+    assert row["value"] == "3 bands: l = 0–1 imprecise; l = 2 determined"
+    res["brdf"] = {"model": "sh-isotropic", "parameters": {"lmax": 2, "pmax": 4},
+                   "isotropic": {"bands": [{"l": 0, "reason": "set by the penalty: ..."}],
+                                 "ill_conditioned_from_l": 0}}
+    row = next(r for r in headline(res)["rows"] if r["quantity"].startswith("BRDF, SH"))
+    assert row["quantity"] == "BRDF, SH coefficients ρ̂_lpq"
+    assert row["value"] == "l ≤ 2, p ≤ 4 (R&H 2001 eq. 16), 1 band: l = 0 set by the prior"
