@@ -55,6 +55,10 @@ def scan(html: str, name: str) -> None:
         assert word not in text, f"{name}: internal vocabulary {word!r}"
     first = visible_text(html[html.index('id="summary"'): html.index('id="inputs"')])
     assert "Measured:" in first and "Does the model explain the data?" in first, name
+    if '<table class="headline">' in html:  # every headline row says what was recovered
+        table = html[html.index('<table class="headline">'):]
+        table = table[:table.index("</table>")]
+        assert "<td></td>" not in table, f"{name}: a headline row without a value"
     assert "data:image/png;base64," in html
     definition = re.findall(r"Band l is ill-conditioned when", text)
     assert len(definition) <= 1, f"{name}: the ill-conditioning definition is printed twice"
