@@ -45,7 +45,8 @@ KNOWN_KEYS: dict[str, set[str]] = {
     "": {"format", "name", "geometry", "camera", "lighting", "images", "noise", "material",
          "saturation", "raw", "colour", "color", "registration", "simulation", "dark_floor",
          "paths", "texture_model", "colour_reference"},
-    "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "normal_map", "mask",
+    "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "vertex_normals",
+                 "normal_map", "mask",
                  "frame_check"},
     "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},
     "lighting": {"kind", "coefficients", "probe", "probe_lmax", "sources"},
@@ -321,7 +322,7 @@ def _parse_correspondences(value: Any, where: str, path: Path) -> Correspondence
 
 
 def _parse_mesh_options(geom: dict, root: Path, path: Path) -> dict:
-    """``geometry.units``, ``geometry.normals``, ``geometry.smooth_normals``, ``geometry.scan``."""
+    """``geometry.units``, ``.normals``, ``.smooth_normals``, ``.vertex_normals``, ``.scan``."""
     units = geom.get("units", "m")
     if isinstance(units, bool) or not isinstance(units, (str, int, float)):
         raise CaptureError(f"key 'geometry.units' must be a unit name or a number, got {units!r}",
@@ -333,9 +334,13 @@ def _parse_mesh_options(geom: dict, root: Path, path: Path) -> dict:
     smooth = _get(geom, "smooth_normals", "geometry.", path, (int,), False, 0)
     if smooth < 0:
         raise CaptureError("key 'geometry.smooth_normals' must be >= 0", path)
+    vn = _get(geom, "vertex_normals", "geometry.", path, (str,), False, "auto")
+    if vn not in ("auto", "file", "computed"):
+        raise CaptureError(f"key 'geometry.vertex_normals' must be 'auto' (the file's when "
+                           f"consistent), 'file' or 'computed', got {vn!r}", path)
     scan = _get(geom, "scan", "geometry.", path, (str,), False, None)
     return {"mesh_units": units, "mesh_normals": normals, "smooth_normals": smooth,
-            "scan": None if scan is None else root / scan}
+            "mesh_vertex_normals": vn, "scan": None if scan is None else root / scan}
 
 
 def load_config(capture_dir: str | Path) -> CaptureConfig:

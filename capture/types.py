@@ -222,6 +222,8 @@ class CaptureConfig:
     mesh_units: str | float = "m"  # geometry.units: name in reconstruct.mesh.UNITS or metres
     mesh_normals: str = "vertex"  # geometry.normals: "vertex" | "face"
     smooth_normals: int = 0  # geometry.smooth_normals: 1-ring normal smoothing iterations
+    #: geometry.vertex_normals: "auto" (the mesh file's when consistent), "file", "computed"
+    mesh_vertex_normals: str = "auto"
     scan: Path | None = None  # geometry.scan: point cloud of the sample in its capture pose
     normal_map: Path | None = None  # geometry.normal_map: per-pixel world normals (EXR)
     geometry_mask: Path | None = None  # geometry.mask: object mask for the normal map

@@ -463,7 +463,8 @@ def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:
     check_distortion(cfg.camera, cfg.toml_path)  # before registration projects anything
     opts = registration_options(cfg)
     mesh = load_mesh(cfg.mesh, units=cfg.mesh_units, normals=cfg.mesh_normals,
-                     smooth_iterations=cfg.smooth_normals)
+                     smooth_iterations=cfg.smooth_normals,
+                     vertex_normals=getattr(cfg, "mesh_vertex_normals", "auto"))
     mesh = register_capture(capture, mesh, refine=opts["refine"])
     kwargs.setdefault("shadows", opts["shadows"])
     geom = compute_geometry(capture, mesh, **kwargs)

@@ -22,7 +22,8 @@ from brdfcap.core.errors import GeometryError
 
 __all__ = ["Mesh", "ConvexityTest", "load_mesh", "mesh_from_arrays", "uv_sphere", "UNITS",
            "NORMAL_MODES", "units_scale", "convexity_test", "face_normals",
-           "MAX_NON_MANIFOLD_FRACTION", "CONVEXITY_REL_TOL"]
+           "MAX_NON_MANIFOLD_FRACTION", "CONVEXITY_REL_TOL", "VERTEX_NORMAL_SOURCES",
+           "FILE_NORMAL_MAX_OUTLIERS", "FILE_NORMAL_MAX_DEG"]
 
 #: Length of one declared mesh unit in metres (world units are metres): ``geometry.units``.
 UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "in": 0.0254,
@@ -164,6 +165,9 @@ def _directed_edges_consistent(faces: np.ndarray) -> bool:
     return bool((_run_lengths(key) == 1).all())
 
 
+#: ``geometry.vertex_normals``: ``auto`` (the file's when present and consistent, else
+#: computed), ``file`` (the file's, required), ``computed`` (area-weighted face normals).
+VERTEX_NORMAL_SOURCES = ("auto", "file", "computed")
 #: The file's vertex normals are used when at most this fraction of them turns more than
 #: :data:`FILE_NORMAL_MAX_DEG` away from the faces' area-weighted normals (after a global flip
 #: of inward-pointing ones); beyond it they belong to another mesh or are broken.
@@ -172,8 +176,8 @@ FILE_NORMAL_MAX_OUTLIERS = 0.05
 FILE_NORMAL_MAX_DEG = 60.0
 
 
-def _file_or_computed_normals(given: np.ndarray | None, computed: np.ndarray
-                              ) -> tuple[np.ndarray, str]:
+def _file_or_computed_normals(given: np.ndarray | None, computed: np.ndarray,
+                              force: bool = False) -> tuple[np.ndarray, str]:
     """Return the mesh file's own vertex normals where present and consistent, else the computed.
 
     A scan's normals (from the scanner, or the surface the mesh was cut from) are closer to the
@@ -183,8 +187,9 @@ def _file_or_computed_normals(given: np.ndarray | None, computed: np.ndarray
     ``docs/geometry.md``). Inward-pointing file normals (median dot product with the computed
     ones below 0) are flipped; non-finite or zero ones, or more than
     :data:`FILE_NORMAL_MAX_OUTLIERS` beyond :data:`FILE_NORMAL_MAX_DEG` of the faces, fall back
-    to the computed normals. Returns ``(normals, what)``, ``what`` recorded in
-    ``mesh.info["vertex_normals"]``.
+    to the computed normals (``force``: ``geometry.vertex_normals = "file"`` keeps any finite,
+    non-zero file normals, flipped if inward). Returns ``(normals, what)``, ``what`` recorded
+    in ``mesh.info["vertex_normals"]``.
     """
     computed_txt = "computed: area-weighted average of the adjacent face normals"
     if given is None:
@@ -200,7 +205,7 @@ def _file_or_computed_normals(given: np.ndarray | None, computed: np.ndarray
     if flipped:
         g, dot = -g, -dot
     out = float(np.mean(dot < np.cos(np.radians(FILE_NORMAL_MAX_DEG))))
-    if out > FILE_NORMAL_MAX_OUTLIERS:
+    if out > FILE_NORMAL_MAX_OUTLIERS and not force:
         return computed, (computed_txt + f" (the file's normals disagree with the faces by more "
                           f"than {FILE_NORMAL_MAX_DEG:g} deg at {100 * out:.3g}% of the vertices)")
     return g, "from the file" + (" (flipped: they pointed inward)" if flipped else "")
@@ -222,7 +227,7 @@ def _smooth_vertex_normals(vn: np.ndarray, faces: np.ndarray, iterations: int) -
 
 
 def _finish(m, source: str, normals: str = "vertex", smooth_iterations: int = 0,
-            scale: float = 1.0) -> Mesh:
+            scale: float = 1.0, vertex_normals: str = "auto") -> Mesh:
     src = source or None
     if normals not in NORMAL_MODES:
         raise GeometryError(f"geometry.normals must be one of {', '.join(NORMAL_MODES)}, got "
@@ -295,7 +300,17 @@ def _finish(m, source: str, normals: str = "vertex", smooth_iterations: int = 0,
     if not (np.all(np.isfinite(v)) and np.all(np.isfinite(n))):
         raise GeometryError("mesh has non-finite vertices or normals", src)
     n = n / np.clip(np.linalg.norm(n, axis=1, keepdims=True), 1e-300, None)
-    n, info["vertex_normals"] = _file_or_computed_normals(given, n)
+    if vertex_normals not in VERTEX_NORMAL_SOURCES:
+        raise GeometryError(f"geometry.vertex_normals must be one of "
+                            f"{', '.join(VERTEX_NORMAL_SOURCES)}, got {vertex_normals!r}", src)
+    if vertex_normals == "file" and given is None:
+        raise GeometryError("geometry.vertex_normals = 'file' but the mesh file has no vertex "
+                            "normals: export them with the mesh, or use 'auto'", src)
+    n, info["vertex_normals"] = _file_or_computed_normals(
+        None if vertex_normals == "computed" else given, n, force=vertex_normals == "file")
+    if vertex_normals == "computed":
+        info["vertex_normals"] = ("computed: area-weighted average of the adjacent face "
+                                  "normals (geometry.vertex_normals = 'computed')")
     if smooth_iterations > 0:
         n = _smooth_vertex_normals(n, f, int(smooth_iterations))
         info["normal_smoothing_iterations"] = int(smooth_iterations)
@@ -304,7 +319,7 @@ def _finish(m, source: str, normals: str = "vertex", smooth_iterations: int = 0,
 
 
 def load_mesh(path: str | Path, units: str | float = "m", normals: str = "vertex",
-              smooth_iterations: int = 0) -> Mesh:
+              smooth_iterations: int = 0, vertex_normals: str = "auto") -> Mesh:
     """Read a PLY/OBJ/STL mesh with open3d, scale it to metres, clean and orient it.
 
     Parameters
@@ -318,6 +333,9 @@ def load_mesh(path: str | Path, units: str | float = "m", normals: str = "vertex
         Shading normal reported by the ray caster (``geometry.normals``).
     smooth_iterations : int
         1-ring averaging steps applied to the vertex normals (0 = none), for noisy scans.
+    vertex_normals : {"auto", "file", "computed"}
+        Where the vertex normals come from (``geometry.vertex_normals``,
+        :data:`VERTEX_NORMAL_SOURCES`): the file's when consistent, the file's, or the faces'.
 
     Raises
     ------
@@ -331,9 +349,9 @@ def load_mesh(path: str | Path, units: str | float = "m", normals: str = "vertex
     scale = units_scale(units, path)
     st = path.stat()
     key = (str(path.resolve()), st.st_mtime_ns, st.st_size, scale, normals,
-           int(smooth_iterations))
+           int(smooth_iterations), vertex_normals)
     if key not in _MESH_CACHE:
-        _MESH_CACHE[key] = _read_mesh(path, scale, normals, smooth_iterations)
+        _MESH_CACHE[key] = _read_mesh(path, scale, normals, smooth_iterations, vertex_normals)
         while len(_MESH_CACHE) > _MESH_CACHE_SIZE:
             _MESH_CACHE.pop(next(iter(_MESH_CACHE)))
     return _copy_mesh(_MESH_CACHE[key])
@@ -353,7 +371,8 @@ def _copy_mesh(m: Mesh) -> Mesh:
                 normals=m.normals, info=copy.deepcopy(m.info))
 
 
-def _read_mesh(path: Path, scale: float, normals: str, smooth_iterations: int) -> Mesh:
+def _read_mesh(path: Path, scale: float, normals: str, smooth_iterations: int,
+               vertex_normals: str = "auto") -> Mesh:
     """Read, clean and orient a mesh file (:func:`load_mesh` without the cache)."""
     import open3d as o3d
 
@@ -365,7 +384,7 @@ def _read_mesh(path: Path, scale: float, normals: str, smooth_iterations: int) -
         raise GeometryError("mesh is empty or unreadable (need a triangle mesh: PLY/OBJ/STL)"
                             + (f": {why}" if why else ""), path)
     mesh = _finish(m, str(path), normals=normals, smooth_iterations=smooth_iterations,
-                   scale=scale)
+                   scale=scale, vertex_normals=vertex_normals)
     if chatter:  # read, but the reader said something: keep it for the report, not the terminal
         mesh.info["reader_messages"] = one_line(*chatter, limit=300)
     return mesh

@@ -63,3 +63,47 @@ def test_normals_of_another_mesh_fall_back_to_the_computed_ones(tmp_path, share)
     assert m.info["vertex_normals"].startswith("computed") and "disagree" in \
         m.info["vertex_normals"]
     assert _angle_to_radial(m).max() < 2.0
+
+
+def test_the_capture_chooses_where_the_normals_come_from(tmp_path):
+    """``geometry.vertex_normals``: ``computed`` ignores the file's, ``file`` keeps them even
+    where they disagree with the faces and is refused (one line naming the key) without them.
+    """
+    from brdfcap.core.errors import GeometryError
+
+    radial = _write(tmp_path / "n.ply", lambda v: v / np.linalg.norm(v, axis=1, keepdims=True))
+    m = load_mesh(radial, vertex_normals="computed")
+    assert "geometry.vertex_normals = 'computed'" in m.info["vertex_normals"]
+    assert np.median(_angle_to_radial(m)) > 0.1
+
+    def tilted(v):  # every normal 70 deg off: auto falls back, file keeps them
+        n = v / np.linalg.norm(v, axis=1, keepdims=True)
+        t = np.cross(n, [0.3, 0.4, 0.866])
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        return np.cos(np.radians(70)) * n + np.sin(np.radians(70)) * t
+
+    odd = _write(tmp_path / "t.ply", tilted)
+    assert load_mesh(odd).info["vertex_normals"].startswith("computed")
+    kept = load_mesh(odd, vertex_normals="file")
+    assert kept.info["vertex_normals"] == "from the file"
+    assert abs(np.median(_angle_to_radial(kept)) - 70.0) < 1.0
+    with pytest.raises(GeometryError, match="vertex_normals = 'file'"):
+        load_mesh(_write(tmp_path / "none.ply"), vertex_normals="file")
+
+
+def test_geometry_vertex_normals_is_read_from_capture_toml(tmp_path):
+    from brdfcap.capture.config import load_config
+    from brdfcap.core.errors import CaptureError
+
+    from brdfcap.testing import make_tiny_capture
+
+    cap = make_tiny_capture(tmp_path / "t")
+    toml = (cap / "capture.toml").read_text()
+    assert load_config(cap).mesh_vertex_normals == "auto"
+    (cap / "capture.toml").write_text(toml.replace("[geometry]", "[geometry]\nvertex_normals = "
+                                                   "\"computed\"", 1))
+    assert load_config(cap).mesh_vertex_normals == "computed"
+    (cap / "capture.toml").write_text(toml.replace("[geometry]", "[geometry]\nvertex_normals = "
+                                                   "\"scanner\"", 1))
+    with pytest.raises(CaptureError, match="geometry.vertex_normals"):
+        load_config(cap)
