@@ -45,6 +45,7 @@ from brdfcap.fit.problems import (
     solve_problem,
 )
 from brdfcap.fit.sh import real_sh
+from brdfcap.footprint import footprint_check
 from brdfcap.reconstruct.geometry import (
     CenteredScene,
     Geometry,
@@ -241,13 +242,15 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
             warnings += render_accuracy_warnings(capture_dir)
     with stage("fit"):
         fit = fit_capture(cap, samples, opts)
+        footprint, fp_warn = footprint_check(capture_dir, samples, fit)
     with stage("report"):
-        warnings += fit.warnings
+        warnings += fit.warnings + fp_warn
         results = results_record(capture=cap, capture_dir=capture_dir, geometry=geom,
                                  samples=samples, fit=fit, options=asdict(opts),
                                  provenance=ctx.provenance, warnings=warnings,
                                  device=str(samples.normal.device))
         figs = report_figures(cap, geom, samples, fit, results, out)
+        results["pixel_footprint"] = footprint
         results["summary"] = summary = summary_lines(results, fit, geom)
     timing = prof.record()
     results["timings_s"] = {k: v["wall_s"] for k, v in timing["stages"].items()}

@@ -93,8 +93,8 @@ def test_the_capture_chooses_where_the_normals_come_from(tmp_path):
 
 def test_geometry_vertex_normals_is_read_from_capture_toml(tmp_path):
     from brdfcap.capture.config import load_config
-    from brdfcap.core.errors import CaptureError
 
+    from brdfcap.core.errors import CaptureError
     from brdfcap.testing import make_tiny_capture
 
     cap = make_tiny_capture(tmp_path / "t")
