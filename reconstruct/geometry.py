@@ -214,9 +214,13 @@ def _curved_hits(p: np.ndarray, nv: np.ndarray, o: np.ndarray, d: np.ndarray,
     ``o``, ``d`` ``(M, 3)`` the rays; ``bu``, ``bv`` ``(M,)`` the flat hits' barycentrics;
     ``extent`` the mesh's size (convergence scale). Returns ``(bu, bv, position, ok)``: ``ok``
     where the refinement converged inside :data:`CURVED_MIN_BARYCENTRIC` (elsewhere the flat
-    values are returned). :func:`cast_view` takes the barycentrics for the normal and keeps the
-    flat position (the mesh every other ray is cast against).
+    values are returned; ``position`` relative to the triangle's first vertex).
+    :func:`cast_view` takes the barycentrics for the normal and keeps the flat position (the
+    mesh every other ray is cast against).
     """
+    # in the frame of each triangle's first vertex: a geo-referenced scan 10^6 m from the
+    # origin keeps its sub-micrometre sag (CenteredScene's reason, float64 here)
+    o, p = o - p[:, 0], p - p[:, :1]
     u, v = bu.copy(), bv.copy()
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     q = p[:, 0] + u[:, None] * e1 + v[:, None] * e2
@@ -257,8 +261,10 @@ def cast_view(scene, mesh: Mesh, camera: CameraModel, world_to_camera: np.ndarra
               grazing_cos: float = GRAZING_COS, edge_px: int = EDGE_PX) -> ViewGeometry:
     """Cast one ray per pixel through its centre against the mesh.
 
-    The shading normal is the barycentric interpolation of the vertex normals
-    (``mesh.normals == "vertex"``) or the hit triangle's flat normal (``"face"``); the geometric
+    The shading normal is the barycentric interpolation of the vertex normals at the ray's
+    intersection with the triangle's curved patch (``mesh.normals == "vertex"``,
+    :func:`_curved_hits`; the position stays on the flat triangle) or the hit triangle's flat
+    normal (``"face"``); the geometric
     normal is always the flat one. ``valid`` keeps hits with ``n·ωo > grazing_cos`` that are not
     within ``edge_px`` pixels of the silhouette or of a depth discontinuity
     (:data:`EDGE_PX`, :data:`DISCONTINUITY_SIN`).
