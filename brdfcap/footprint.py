@@ -112,7 +112,7 @@ def footprint_check(capture_dir: str | Path, samples, fit) -> tuple[dict, list[s
         return rec, []
     return rec, [f"pixel footprint: each pixel averages the radiance over its area while the fit "
                  f"renders its centre; from the fit's own image that difference, (B_xx + "
-                 f"B_yy)/24, is {rms:.2g} noise s.d. (RMS) over {n} samples, enough to bias "
+                 f"B_yy)/24, is {rms:.2g} noise s.d. (RMS) over {n} samples, which can move "
                  f"the results beyond their errors (a glossy lobe comes back broader: Phong s "
                  f"5% low at 48 px, 2% at 96 px; docs/fitting.md, 'The pixel footprint'). "
                  f"Fix: photographs in which the object spans more pixels"]
