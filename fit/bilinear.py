@@ -77,7 +77,8 @@ from .solve import (
 )
 
 __all__ = ["BilinearFit", "fit_bilinear", "check_products_halves", "NULL_RTOL",
-           "NULL_COMPONENT_MIN", "PRODUCT_NULL_COSINE"]
+           "NULL_COMPONENT_MIN", "PRODUCT_NULL_COSINE", "AMBIGUITY_REASON", "LAPLACE_REASON",
+           "NOT_EXCITED_REASON"]
 
 #: Eigenvalues of the Jacobi-scaled joint normal matrix below this fraction of the largest are
 #: exact ambiguities (null directions); float64 normal equations resolve ~1e-16, the structural
@@ -94,9 +95,11 @@ PRODUCT_NULL_COSINE = 1e-3
 #: undetermined_reason``), where it is not the design's: an exact ambiguity moves it ...
 AMBIGUITY_REASON = ("moves with an ambiguity (a null direction of the joint problem over its "
                     "admissible range): only the gauge-invariant products are determined")
-#: ... or a direction of the posterior that is not Gaussian carries it (Laplace check).
+#: ... or a direction of the posterior that is not Gaussian carries it (Laplace check) ...
 LAPLACE_REASON = ("the posterior is not Gaussian along a direction that carries it (Laplace "
                   "check, Bates & Watts 1980): no interval")
+#: ... or no fitted lighting band excites it (the start of the reason; the band follows).
+NOT_EXCITED_REASON = "not excited: no fitted lighting band carries it"
 
 
 def _gauge_range(v: torch.Tensor, kd: torch.Tensor, f: torch.Tensor, off: int, lb: int,
@@ -328,14 +331,14 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
             wide = _restrict(fit_bilinear(normal, reflected, radiance, lint, **kw), lmax)
             what = "worst chi2/nu" if out.adequacy.get("chi2_reduced") else \
                 "worst relative residual RMS squared"
-            why = (f"at lmax = {lmax} the model did not explain the data ({what} "
-                   f"{_excess(out.adequacy):.3g})")
+            e_out = _excess(out.adequacy)
+            why = f"at lmax = {lmax} the model did not explain the data ({what} {e_out:.3g})"
             if wide.lighting.internal_lmax == lmax:  # the rim cut left too few samples
                 out.lighting.internal_reason = (
                     f"not solved above lmax: {why}; the {(wide.horizon or {}).get('kept')} "
                     "samples the rim cut keeps allow no band above it ((L+1)^2 <= N/2)")
             elif wide.adequacy is None or wide.adequacy["adequate"] or \
-                    _excess(wide.adequacy) <= WIDE_EXCESS_SHARE * _excess(out.adequacy):
+                    _excess(wide.adequacy) <= WIDE_EXCESS_SHARE * e_out:
                 wide.lighting.internal_reason = (f"solved to l = {wide.lighting.internal_lmax}: "
                                                  + why)
                 return wide
@@ -343,13 +346,12 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
                 # the bands above lmax do not explain the excess (a wrong lobe, not
                 # truncation): the fit at lmax stands, and says it was tried (the Beckmann
                 # demo: chi2/nu 8.7 -> 6.4 at l = 8, its errors would only widen)
+                lw, e_wide = wide.lighting.internal_lmax, _excess(wide.adequacy)
                 out.lighting.internal_reason = (
-                    f"not solved above lmax: {why}; solved to l = "
-                    f"{wide.lighting.internal_lmax} it still did not "
-                    f"({_excess(wide.adequacy):.3g}), so truncation is not the cause")
-                rule_out_truncation(out.adequacy, f"solved to l = {wide.lighting.internal_lmax}"
-                                    f", {what} {_excess(out.adequacy):.3g} -> "
-                                    f"{_excess(wide.adequacy):.3g}")
+                    f"not solved above lmax: {why}; solved to l = {lw} it still did not "
+                    f"({e_wide:.3g}), so truncation is not the cause")
+                rule_out_truncation(out.adequacy,
+                                    f"solved to l = {lw}, {what} {e_out:.3g} -> {e_wide:.3g}")
         if halves:
             check_products_halves(out, normal, reflected, radiance, variance, view)
         return _restrict(out, lmax)
@@ -688,9 +690,9 @@ def fit_bilinear(normal: torch.Tensor, reflected: torch.Tensor, radiance: torch.
     for l in range(1, lb + 1):
         i = off + l - 1
         if not bool(seen[i]):
-            f_why[l] = (f"not excited: no fitted lighting band carries it (the lighting is "
-                        f"solved to l = {lmax}; raise --lmax to see it)")
-        elif l in amb_f and bool(touched_p[i]):
+            f_why[l] = (f"{NOT_EXCITED_REASON} (the lighting is solved to l = {lmax}; raise "
+                        "--lmax to see it)")
+        elif bool(touched_p[i]):  # an exact ambiguity's null direction takes it (amb_f)
             f_why[l] = AMBIGUITY_REASON
         elif bool(lap_t[i]):
             f_why[l] = LAPLACE_REASON

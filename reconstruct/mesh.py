@@ -176,22 +176,31 @@ FILE_NORMAL_MAX_OUTLIERS = 0.05
 FILE_NORMAL_MAX_DEG = 60.0
 
 
-def _file_or_computed_normals(given: np.ndarray | None, computed: np.ndarray,
-                              force: bool = False) -> tuple[np.ndarray, str]:
-    """Return the mesh file's own vertex normals where present and consistent, else the computed.
+def _vertex_normals(given: np.ndarray | None, computed: np.ndarray, mode: str = "auto",
+                    source: str | None = None) -> tuple[np.ndarray, str]:
+    """Return the vertex normals ``geometry.vertex_normals`` asks for, and what they are.
 
-    A scan's normals (from the scanner, or the surface the mesh was cut from) are closer to the
-    true surface than the average of the facets around a vertex: on a 24 x 48 UV sphere the
-    area-weighted average is off by 0.24° (median) to 1.27° near the poles, exact file normals by
-    0, and a Lambertian sphere's band 1 came back 5.5 standard errors off with them (session 22,
-    ``docs/geometry.md``). Inward-pointing file normals (median dot product with the computed
-    ones below 0) are flipped; non-finite or zero ones, or more than
-    :data:`FILE_NORMAL_MAX_OUTLIERS` beyond :data:`FILE_NORMAL_MAX_DEG` of the faces, fall back
-    to the computed normals (``force``: ``geometry.vertex_normals = "file"`` keeps any finite,
-    non-zero file normals, flipped if inward). Returns ``(normals, what)``, ``what`` recorded
-    in ``mesh.info["vertex_normals"]``.
+    ``mode`` (:data:`VERTEX_NORMAL_SOURCES`): ``"auto"`` takes the mesh file's own normals where
+    present and consistent, else the area-weighted ``computed`` ones; ``"file"`` the file's
+    (any finite, non-zero ones; a :class:`GeometryError` without them); ``"computed"`` the
+    computed ones. A scan's normals (from the scanner, or the surface the mesh was cut from) are
+    closer to the true surface than the average of the facets around a vertex: on a 24 x 48 UV
+    sphere the area-weighted average is off by 0.24° (median) to 1.27° near the poles, exact
+    file normals by 0, and a Lambertian sphere's band 1 came back 5.5 standard errors off with
+    them (session 22, ``docs/geometry.md``). Inward-pointing file normals (median dot product
+    with the computed ones below 0) are flipped; under ``"auto"`` non-finite or zero ones, or
+    more than :data:`FILE_NORMAL_MAX_OUTLIERS` beyond :data:`FILE_NORMAL_MAX_DEG` of the faces,
+    fall back to the computed normals. ``what`` is recorded in ``mesh.info["vertex_normals"]``.
     """
+    if mode not in VERTEX_NORMAL_SOURCES:
+        raise GeometryError(f"geometry.vertex_normals must be one of "
+                            f"{', '.join(VERTEX_NORMAL_SOURCES)}, got {mode!r}", source)
+    if mode == "file" and given is None:
+        raise GeometryError("geometry.vertex_normals = 'file' but the mesh file has no vertex "
+                            "normals: export them with the mesh, or use 'auto'", source)
     computed_txt = "computed: area-weighted average of the adjacent face normals"
+    if mode == "computed":
+        return computed, computed_txt + " (geometry.vertex_normals = 'computed')"
     if given is None:
         return computed, computed_txt + " (the file has none)"
     if given.shape != computed.shape:  # cleaning dropped the attribute's alignment
@@ -205,7 +214,7 @@ def _file_or_computed_normals(given: np.ndarray | None, computed: np.ndarray,
     if flipped:
         g, dot = -g, -dot
     out = float(np.mean(dot < np.cos(np.radians(FILE_NORMAL_MAX_DEG))))
-    if out > FILE_NORMAL_MAX_OUTLIERS and not force:
+    if out > FILE_NORMAL_MAX_OUTLIERS and mode == "auto":
         return computed, (computed_txt + f" (the file's normals disagree with the faces by more "
                           f"than {FILE_NORMAL_MAX_DEG:g} deg at {100 * out:.3g}% of the vertices)")
     return g, "from the file" + (" (flipped: they pointed inward)" if flipped else "")
@@ -300,17 +309,7 @@ def _finish(m, source: str, normals: str = "vertex", smooth_iterations: int = 0,
     if not (np.all(np.isfinite(v)) and np.all(np.isfinite(n))):
         raise GeometryError("mesh has non-finite vertices or normals", src)
     n = n / np.clip(np.linalg.norm(n, axis=1, keepdims=True), 1e-300, None)
-    if vertex_normals not in VERTEX_NORMAL_SOURCES:
-        raise GeometryError(f"geometry.vertex_normals must be one of "
-                            f"{', '.join(VERTEX_NORMAL_SOURCES)}, got {vertex_normals!r}", src)
-    if vertex_normals == "file" and given is None:
-        raise GeometryError("geometry.vertex_normals = 'file' but the mesh file has no vertex "
-                            "normals: export them with the mesh, or use 'auto'", src)
-    n, info["vertex_normals"] = _file_or_computed_normals(
-        None if vertex_normals == "computed" else given, n, force=vertex_normals == "file")
-    if vertex_normals == "computed":
-        info["vertex_normals"] = ("computed: area-weighted average of the adjacent face "
-                                  "normals (geometry.vertex_normals = 'computed')")
+    n, info["vertex_normals"] = _vertex_normals(given, n, vertex_normals, src)
     if smooth_iterations > 0:
         n = _smooth_vertex_normals(n, f, int(smooth_iterations))
         info["normal_smoothing_iterations"] = int(smooth_iterations)

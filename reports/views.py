@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from brdfcap.fit.bilinear import AMBIGUITY_REASON, LAPLACE_REASON, NOT_EXCITED_REASON
 from brdfcap.fit.brdf_models import diffuse_filter, phong_sh_filter
 from brdfcap.fit.solve import NO_NOISE_MODEL
 
@@ -230,8 +231,8 @@ _SUB = str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉")
 #: A band row's verdict in a word (:func:`band_tally`), from its flags, else its ``reason``.
 _TALLY = (("aliased", "aliased (odd/even pair)"), ("imprecise", "imprecise"),
           ("set by the", "set by the prior"), ("not reached", "not reached"),
-          ("not resolved", "not reached"), ("not excited", "not excited"),
-          ("moves with an ambiguity", "moved by an ambiguity"))
+          ("not resolved", "not reached"), (NOT_EXCITED_REASON, "not excited"),
+          (AMBIGUITY_REASON, "moved by an ambiguity"))
 
 
 def band_tally(bands) -> str:
@@ -283,14 +284,14 @@ def _radial_filter_text(brdf: dict) -> str:
     parts, unexcited, starred = ["f₀ = 1 (the gauge)"], [], False
     for l in range(1, len(f)):
         name, why = f"f{str(l).translate(_SUB)}", reasons.get(l, "")
-        if why.startswith("not excited"):
+        if why.startswith(NOT_EXCITED_REASON):
             unexcited.append(l)
         elif _is_num(se[l]) and math.isfinite(se[l]):
             parts.append(f"{name} {fmt_pm(f[l], se[l])}")
-        elif why.startswith("moves with an ambiguity"):
+        elif why == AMBIGUITY_REASON:
             parts.append(f"{name} {fmt_num(f[l], 3)}*")
             starred = True
-        elif why.startswith("the posterior is not Gaussian"):
+        elif why == LAPLACE_REASON:
             parts.append(f"{name} {fmt_num(f[l], 3)} (no interval: Laplace check)")
         else:
             parts.append(f"{name} {fmt_num(f[l], 3)} (not determined)")

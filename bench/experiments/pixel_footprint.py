@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from dataclasses import fields, replace
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from brdfcap.capture.simulate import simulate
 from click.testing import CliRunner
 
 from brdfcap.cli import main as cli
+from brdfcap.footprint import footprint_term
 from brdfcap.pipeline import RunOptions, fit_capture, reconstruct_capture
 from brdfcap.testing import PHONG_MATERIAL, scene_text
 
@@ -45,22 +45,20 @@ ENV = 'kind = "environment"\nsh = "grace-rh2001-nonneg"\nknown = true'
 
 
 def _grid_terms(pred, view, pix):
-    """Per sample ``(B_xx + B_yy)/24`` and whether the 2-pixel stencil is all samples."""
-    n, nch = pred.shape
-    d2 = torch.zeros_like(pred)
-    ok = torch.zeros(n, dtype=torch.bool)
+    """Per sample ``(B_xx + B_yy)/24`` and whether the 2-pixel stencil is all samples.
+
+    The term is :func:`brdfcap.footprint.footprint_term`'s; the ring two pixels out is what
+    this experiment adds (no sample within two pixels of a mask edge is kept).
+    """
+    d2, ok = footprint_term(pred, view, pix)
+    ring = ok.clone()
     for v in torch.unique(view).tolist():
         sel = torch.nonzero(view == v).flatten()
         r, c = pix[sel, 0] + 2, pix[sel, 1] + 2
-        img = torch.full((int(r.max()) + 3, int(c.max()) + 3, nch), math.nan,
-                         dtype=torch.float64)
-        img[r, c] = pred[sel]
-        lap = img[r - 1, c] + img[r + 1, c] + img[r, c - 1] + img[r, c + 1] - 4 * img[r, c]
-        ring = torch.stack([img[r - 2, c], img[r + 2, c], img[r, c - 2], img[r, c + 2]])
-        good = torch.isfinite(lap).all(-1) & torch.isfinite(ring).all(0).all(-1)
-        d2[sel] = torch.where(good[:, None], lap / 24.0, torch.zeros_like(lap))
-        ok[sel] = good
-    return d2, ok
+        have = torch.zeros(int(r.max()) + 3, int(c.max()) + 3, dtype=torch.bool)
+        have[r, c] = True
+        ring[sel] &= have[r - 2, c] & have[r + 2, c] & have[r, c - 2] & have[r, c + 2]
+    return d2, ring
 
 
 def corrected(cap_dir: Path) -> dict:
