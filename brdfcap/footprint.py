@@ -1,25 +1,36 @@
-"""The pixel footprint: a camera averages over its pixel, every fit samples the centre.
+"""The pixel footprint: a camera averages over its pixel; the fits render rays.
 
 Every fit renders a pixel at its centre ray ``(n, ωo)``; a camera's pixel value is the mean of
-the radiance over the pixel. For a smooth image ``B(x, y)`` (pixel units) the mean over the
-unit square is ``B + (B_xx + B_yy)/24 + O(h⁴)``. Across a glossy lobe that term is not small: a
-48-pixel Phong sphere (s = 20) averaged over 16 rays per pixel gives problem brdf's exponent
-5.3% low, 10 standard errors, and 96 pixels 2.3%, 9 errors (``bench/experiments/
-pixel_footprint.py``, ``docs/fitting.md``, "The pixel footprint, not modelled"). The fits do
-not model it yet; :func:`footprint_check` estimates the term from the fit's own image and says
-when it could move a result, so a reader does not take a footprint-broadened lobe for the
-material's.
+the radiance over the pixel (a box of 100% fill factor; lens blur and demosaicing are not
+modelled). For a smooth image ``B(x, y)`` (pixel units) the mean over the unit square is
+``B + (B_xx + B_yy)/24 + O(h⁴)``. Across a glossy lobe that term is not small: a 48-pixel Phong
+sphere (s = 20) averaged over 16 rays per pixel gave problem brdf's exponent 5.3% low, 10
+standard errors, and 96 pixels 2.3%, 9 errors (``bench/experiments/pixel_footprint.py``).
+
+:func:`model_footprint` models it where the scene calls for it: the first fit's own forward
+model (``FitResult.predict``) is rendered at the 2 x 2 Gauss-Legendre points of every pixel
+(:data:`brdfcap.reconstruct.geometry.PIXEL_GAUSS_OFFSETS`, exact for a bicubic image); where
+the mean of those four differs from the centre ray's by more than
+:data:`FOOTPRINT_MODEL_EFFECT` (coherent effect in standard errors) the problem is solved again
+on ``b - (mean - centre)`` until that difference settles — a fixed point at which the
+*pixel-averaged* model explains the data (``docs/fitting.md``, "The pixel footprint").
+Where the footprint cannot be modelled (no forward model for other geometry, geometry from a
+normal map) :func:`footprint_check` estimates the term from the fit's own image and warns.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
 
-__all__ = ["footprint_check", "footprint_term", "FOOTPRINT_WARN_EFFECT", "PER_PIXEL_PROBLEMS"]
+__all__ = ["footprint_check", "footprint_term", "model_footprint", "pixel_kind",
+           "FootprintOutcome", "FOOTPRINT_WARN_EFFECT",
+           "FOOTPRINT_MODEL_EFFECT", "FOOTPRINT_MAX_REFITS", "FOOTPRINT_SETTLED",
+           "PER_PIXEL_PROBLEMS"]
 
 #: Warn when ``RMS(ΔB/σ) · sqrt(n)`` exceeds this: the term, acting coherently on the ``n``
 #: samples, moves fitted parameters by a few standard errors. Measured (session 22, the same
@@ -28,6 +39,14 @@ __all__ = ["footprint_check", "footprint_term", "FOOTPRINT_WARN_EFFECT", "PER_PI
 #: (1% noise) 5.5 — s 9 errors (4.4%) low; noise-free 48. The Lambertian demo and the tiny
 #: 48-px Lambertian sphere 1.8 and 0.9 (no shift beyond 2.4 errors).
 FOOTPRINT_WARN_EFFECT = 3.0
+#: The footprint is modelled when the sub-pixel rays' correction, acting coherently on the
+#: samples (``RMS(ΔB/σ) · sqrt(n)``), is worth this many standard errors: below it a refit moves
+#: no parameter measurably, and no pixel is left out for it.
+FOOTPRINT_MODEL_EFFECT = 1.0
+#: At most this many refits on corrected data ...
+FOOTPRINT_MAX_REFITS = 4
+#: ... stopping when the correction changed by less than this (same units) since the last one.
+FOOTPRINT_SETTLED = 0.1
 #: Problems whose prediction carries a per-pixel albedo: its texture has curvature of its own,
 #: which a camera averages into the albedo the fit reports (not a bias of the fit).
 PER_PIXEL_PROBLEMS = ("brdf-map", "aldrian-smith")
@@ -60,7 +79,7 @@ def footprint_term(prediction: torch.Tensor, view: torch.Tensor, pixel: torch.Te
 
 
 def _point_sampled(capture_dir: str | Path) -> bool:
-    """Tell whether the capture was simulated with one ray per pixel (the centre, as fits do)."""
+    """Tell whether the capture was simulated with one ray per pixel (the centre)."""
     gt = Path(capture_dir) / "ground_truth.json"
     if not gt.is_file():
         return False
@@ -70,18 +89,57 @@ def _point_sampled(capture_dir: str | Path) -> bool:
         return False
 
 
-def footprint_check(capture_dir: str | Path, samples, fit) -> tuple[dict, list[str]]:
-    """``(results.json: pixel_footprint, warnings)`` for a fit's prediction over ``samples``.
+def pixel_kind(capture, capture_dir: str | Path) -> tuple[str, str]:
+    """``(kind, why)``: what a capture's pixel values are, ``"area"`` or ``"point"``.
 
-    ``pixel``: ``"centre"`` for a simulated capture rendered at the pixel centres (no check),
-    else ``"area"``; ``rms_sigma`` the term's RMS in noise s.d. (the noise model's, else the
-    fit's residual RMS per channel), ``effect`` = ``rms_sigma · sqrt(n)``, ``samples`` ``n``;
-    a warning when ``effect`` > :data:`FOOTPRINT_WARN_EFFECT`.
+    ``capture.toml: camera.pixel`` where given; else a capture simulated at the pixel centres
+    before the simulator wrote the key (``ground_truth.json: renderer.spp = 1``) is ``point``;
+    else ``area`` (a camera's pixel).
     """
-    rec = {"pixel": "area", "checked": False, "rms_sigma": None, "effect": None, "samples": 0,
-           "warn_above": FOOTPRINT_WARN_EFFECT}
+    cfg = capture.config
+    raw = cfg.raw.get("camera") if isinstance(cfg.raw, dict) else None
+    if isinstance(raw, dict) and "pixel" in raw:
+        return cfg.camera.pixel, f"capture.toml camera.pixel = '{cfg.camera.pixel}'"
     if _point_sampled(capture_dir):
-        rec.update(pixel="centre", reason="simulated at the pixel centres, as the fits sample")
+        return "point", "simulated at the pixel centres (ground_truth.json renderer.spp = 1)"
+    return cfg.camera.pixel, "a camera's pixel (the default of camera.pixel)"
+
+
+def _noise_sd(samples, pred: torch.Tensor) -> torch.Tensor | None:
+    """``(N, C)`` noise s.d.: the noise model's, else the residual RMS per channel."""
+    b = samples.radiance
+    var = getattr(samples, "variance", None)
+    if var is not None:
+        return var.to(torch.float64).sqrt()
+    r = b - pred
+    fin = torch.isfinite(r).all(-1)
+    if not bool(fin.any()):
+        return None
+    return r[fin].pow(2).mean(0).sqrt().expand_as(b)
+
+
+def _effect(delta: torch.Tensor, sd: torch.Tensor, good: torch.Tensor) -> float:
+    """``RMS(delta/sd) · sqrt(n)`` over the ``good`` samples (0 with none)."""
+    n = int(good.sum())
+    if n == 0:
+        return 0.0
+    return float((delta[good] / sd[good]).pow(2).mean().sqrt()) * math.sqrt(n)
+
+
+def footprint_check(pixel: tuple[str, str], samples, fit) -> tuple[dict, list[str]]:
+    """``(results.json: pixel_footprint, warnings)``: the footprint estimated, not modelled.
+
+    For fits whose footprint :func:`model_footprint` cannot model: the term
+    ``(B_xx + B_yy)/24`` of the fit's own image (:func:`footprint_term`). ``pixel``:
+    :func:`pixel_kind` (``"point"``: nothing to check); ``rms_sigma`` the term's RMS in noise
+    s.d. (the noise model's, else the fit's residual RMS per channel), ``effect`` =
+    ``rms_sigma · sqrt(n)``, ``samples`` ``n``; a warning when ``effect`` >
+    :data:`FOOTPRINT_WARN_EFFECT`.
+    """
+    rec = {"pixel": pixel[0], "pixel_source": pixel[1], "checked": False, "rms_sigma": None,
+           "effect": None, "samples": 0, "warn_above": FOOTPRINT_WARN_EFFECT}
+    if pixel[0] == "point":
+        rec["reason"] = "point samples (the centre ray), as the fits render: nothing to model"
         return rec, []
     pred = getattr(fit, "prediction", None)
     b, pix = samples.radiance, getattr(samples, "pixel", None)
@@ -91,16 +149,10 @@ def footprint_check(capture_dir: str | Path, samples, fit) -> tuple[dict, list[s
         return rec, []
     pred = pred.to(device=b.device, dtype=torch.float64)
     delta, ok = footprint_term(pred, samples.view, pix)
-    var = getattr(samples, "variance", None)
-    if var is not None:
-        sd = var.to(torch.float64).sqrt()
-    else:
-        r = b - pred
-        fin = torch.isfinite(r).all(-1)
-        if not bool(fin.any()):
-            rec["reason"] = "no finite residual: not checked"
-            return rec, []
-        sd = r[fin].pow(2).mean(0).sqrt().expand_as(b)
+    sd = _noise_sd(samples, pred)
+    if sd is None:
+        rec["reason"] = "no finite residual: not checked"
+        return rec, []
     good = ok & torch.isfinite(b).all(-1) & torch.isfinite(sd).all(-1) & (sd > 0).all(-1)
     n = int(good.sum())
     if n == 0:
@@ -116,3 +168,161 @@ def footprint_check(capture_dir: str | Path, samples, fit) -> tuple[dict, list[s
                  f"the results beyond their errors (a glossy lobe comes back broader: Phong s "
                  f"5% low at 48 px, 2% at 96 px; docs/fitting.md, 'The pixel footprint'). "
                  f"Fix: photographs in which the object spans more pixels"]
+
+
+@dataclass
+class FootprintOutcome:
+    """What :func:`model_footprint` leaves for the run.
+
+    ``fit``: the last solve, not finished (:func:`brdfcap.fit.problems.finish_problem` with
+    ``fitted``, the samples it was solved on); ``samples``: the samples the report shows
+    (observed radiance; the rows whose footprint was modelled where it was); ``correction``:
+    ``(N, C)`` to add to the finished fit's prediction (the pixel mean minus the centre ray),
+    or ``None``; ``record``: ``results.json: pixel_footprint``; ``warnings``; ``summary``: a
+    line for the report, or ``None``.
+    """
+
+    fit: object
+    fitted: object
+    samples: object
+    correction: torch.Tensor | None
+    record: dict
+    warnings: list[str] = field(default_factory=list)
+    summary: str | None = None
+
+
+def _start(fit) -> dict:
+    """Return a solve's estimates (and kept hyper-parameters) for the next solve to start from."""
+    return {e.quantity: e.value for e in fit.estimates if not e.known} | fit.restart
+
+
+def _shifts(first, last) -> dict:
+    """Per estimate: the largest move from ``first`` to ``last`` in ``last``'s standard errors.
+
+    ``{quantity: {"z": max |Δ|/σ, "relative": |Δ|/|first| at that element}}`` over the
+    estimates with finite errors, both solves reporting the same shape.
+    """
+    before = {e.quantity: e for e in first.estimates if not e.known}
+    out = {}
+    for e in last.estimates:
+        a = before.get(e.quantity)
+        if e.known or a is None or e.stderr is None or a.value.shape != e.value.shape:
+            continue
+        d = (e.value.to(torch.float64) - a.value.to(torch.float64)).reshape(-1).cpu()
+        se = torch.as_tensor(e.stderr, dtype=torch.float64).reshape(-1).cpu().expand_as(d)
+        ok = torch.isfinite(d) & torch.isfinite(se) & (se > 0)
+        if not bool(ok.any()):
+            continue
+        z = torch.where(ok, d.abs() / se.clamp_min(1e-300), torch.zeros_like(d))
+        i = int(z.argmax())
+        v0 = float(a.value.reshape(-1).cpu()[i])
+        out[e.quantity] = {"z": float(z[i]), "relative": float(d[i]) / v0 if v0 else None,
+                           "element": i}
+    return out
+
+
+def _shift_words(shifts: dict) -> str:
+    """``"s -5.1% (9.2 s.e.), kd ..."``: the three largest moves, in standard errors."""
+    def one(q, v):
+        rel = "" if v["relative"] is None else f"{v['relative']:+.1%} "
+        return f"{q} {rel}({v['z']:.2g} s.e.)"
+
+    top = sorted(shifts.items(), key=lambda kv: -kv[1]["z"])[:3]
+    return ", ".join(one(q, v) for q, v in top)
+
+
+def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solve
+                    ) -> FootprintOutcome:
+    """Model the pixel footprint of a fit where the scene calls for it (module doc).
+
+    Parameters
+    ----------
+    pixel
+        :func:`pixel_kind` of the capture (``"point"``: nothing to model).
+    fit, fitted
+        The first solve (not finished) and the samples it was solved on.
+    samples
+        The run's samples (observed radiance).
+    subpixel
+        ``() -> (list of Samples, keep)``: the samples' geometry at the sub-pixel points and
+        the rows whose every sub-pixel ray is usable
+        (:func:`brdfcap.reconstruct.geometry.subpixel_samples`), or ``None`` where there is
+        no mesh to cast against.
+    solve
+        ``(samples, start) -> (fit, fitted)``: the same problem solved again, not finished,
+        starting from ``start`` (:func:`brdfcap.fit.problems.solve_unfinished`).
+    """
+    def unchanged(rec, warns=(), why=None):
+        if why:
+            rec["reason"] = why
+        return FootprintOutcome(fit, fitted, samples, None, rec, list(warns))
+
+    if pixel[0] == "point":
+        rec, _ = footprint_check(pixel, samples, fit)
+        return unchanged(rec | {"modelled": False})
+    if fit.problem in PER_PIXEL_PROBLEMS or getattr(fit, "predict", None) is None or \
+            subpixel is None:
+        rec, warns = footprint_check(pixel, samples, fit)
+        why = ("per-pixel albedo: its texture's own curvature is what a camera averages"
+               if fit.problem in PER_PIXEL_PROBLEMS else
+               "geometry from a normal map: no surface to cast sub-pixel rays against"
+               if subpixel is None else
+               f"problem {fit.problem} has no forward model for other geometry")
+        return unchanged(rec | {"modelled": False, "not_modelled": why}, warns)
+    subs, keep = subpixel()
+    sk = samples.take(keep)
+    subk = [t.take(keep) for t in subs]
+
+    def correction(f) -> torch.Tensor:
+        centre = f.predict(sk).to(torch.float64)
+        area = torch.stack([f.predict(t).to(torch.float64) for t in subk]).mean(0)
+        c = area - centre
+        return torch.where(torch.isfinite(c), c, torch.zeros_like(c))
+
+    rec = {"pixel": "area", "pixel_source": pixel[1], "checked": True, "modelled": False,
+           "rule": "2 x 2 Gauss-Legendre points of the unit pixel",
+           "rays_per_pixel": len(subs), "model_above": FOOTPRINT_MODEL_EFFECT,
+           "samples": int(keep.sum()), "left_out": int((~keep).sum())}
+    pred = fit.prediction
+    if pred is None or pred.shape != samples.radiance.shape or int(keep.sum()) == 0:
+        return unchanged(rec | {"checked": False},
+                         why="no per-sample prediction, or no pixel whose footprint lies on "
+                             "one surface: not checked")
+    c = correction(fit)
+    sd = _noise_sd(sk, pred[keep].to(torch.float64))
+    if sd is None:
+        return unchanged(rec | {"checked": False}, why="no finite residual: not checked")
+    b = sk.radiance
+    good = torch.isfinite(b).all(-1) & torch.isfinite(sd).all(-1) & (sd > 0).all(-1)
+    effect = _effect(c, sd, good)
+    rec["effect"] = effect
+    rec["rms_sigma"] = effect / math.sqrt(max(int(good.sum()), 1))
+    if not effect > FOOTPRINT_MODEL_EFFECT:
+        rec["samples"] = len(samples)
+        rec["left_out"] = 0
+        return unchanged(rec, why="the pixel mean and the centre ray differ by less than the "
+                                  "threshold: the centre-ray fit stands")
+    first, changes, settled = fit, [], False
+    for _ in range(FOOTPRINT_MAX_REFITS):
+        used = c
+        fit, fitted = solve(replace(sk, radiance=sk.radiance - used), _start(fit))
+        c = correction(fit)
+        changes.append(_effect(c - used, sd, good))
+        if changes[-1] <= FOOTPRINT_SETTLED:
+            settled = True
+            break
+    shifts = _shifts(first, fit)
+    rec.update(modelled=True, refits=len(changes), settled=settled, changes=changes,
+               shifts=shifts)
+    line = (f"Pixel footprint modelled: each pixel is the mean of {len(subs)} rays (2 x 2 "
+            f"Gauss-Legendre points), not its centre ray, which missed it by {effect:.3g} "
+            f"standard errors (coherent effect over {int(good.sum())} samples); "
+            f"{len(changes)} refit(s) on the corrected data moved "
+            f"{_shift_words(shifts) or 'nothing'}"
+            + (f"; {rec['left_out']} pixels whose footprint crosses an edge or a shadow "
+               "boundary left out" if rec["left_out"] else "") + ".")
+    warns = [] if settled else [
+        f"pixel footprint: the modelled pixel mean had not settled after "
+        f"{FOOTPRINT_MAX_REFITS} refits (last change {changes[-1]:.2g} standard errors): the "
+        f"results may still carry part of the footprint's bias"]
+    return FootprintOutcome(fit, fitted, sk, used, rec, warns, line)

@@ -9,6 +9,7 @@ is assembled by :mod:`brdfcap.reports.assemble` and the outputs written by the o
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -41,17 +42,20 @@ from brdfcap.fit.problems import (
     FitResult,
     Known,
     check_lmax,
+    finish_problem,
     get_problem,
     solve_problem,
+    solve_unfinished,
 )
 from brdfcap.fit.sh import real_sh
-from brdfcap.footprint import footprint_check
+from brdfcap.footprint import model_footprint, pixel_kind
 from brdfcap.reconstruct.geometry import (
     CenteredScene,
     Geometry,
     Samples,
     build_samples,
     compute_capture_geometry,
+    subpixel_samples,
 )
 from brdfcap.reconstruct.mesh import uv_sphere
 from brdfcap.reconstruct.normal_map import apply_frame_check
@@ -63,6 +67,7 @@ from brdfcap.results_io import RESULTS_FORMAT, results_record, write_coefficient
 _log = logging.getLogger("brdfcap")
 
 __all__ = ["RunOptions", "RunContext", "RunOutcome", "run_capture", "fit_capture", "known_of",
+           "fit_with_footprint",
            "reconstruct_capture", "warm_up",
            "RESULTS_FORMAT", "versions"]
 
@@ -192,6 +197,46 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
                          fit_opts)
 
 
+def fit_with_footprint(capture: Capture, capture_dir: str | Path, geometry: Geometry,
+                       samples: Samples, options: RunOptions
+                       ) -> tuple[FitResult, Samples, dict, list[str]]:
+    """:func:`fit_capture` with the camera's pixel footprint modelled where the scene calls for it.
+
+    :func:`brdfcap.footprint.model_footprint`: the first fit's model rendered at sub-pixel
+    rays (:func:`~brdfcap.reconstruct.geometry.subpixel_samples`) and, where their mean differs
+    measurably from the centre ray, the problem solved again until the pixel-averaged model
+    explains the data. Returns ``(fit, samples the report shows, results.json:
+    pixel_footprint, warnings)``; the fit's prediction is the pixel mean where it was modelled.
+    """
+    if len(samples) == 0:
+        raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
+                       capture.config.toml_path)
+    check_lmax(options.problem, options.lmax, capture.config.toml_path)
+    fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
+                          brdf_lmax=options.brdf_lmax, design=options.design,
+                          method=options.method)
+    known = known_of(capture, options, samples)
+    fit, fitted = solve_unfinished(options.problem, samples, known, fit_opts)
+    subpixel = None
+    if geometry.mesh is not None:
+        def subpixel():
+            return subpixel_samples(capture, geometry, samples)
+
+    def solve(data, start):
+        return solve_unfinished(options.problem, data, known,
+                                dataclasses.replace(fit_opts, start=start))
+
+    out = model_footprint(pixel_kind(capture, capture_dir), fit, fitted, samples, subpixel,
+                          solve)
+    fit = finish_problem(out.fit, out.fitted, known)
+    if out.correction is not None:  # the model's pixel mean: the residual the verdict judged
+        fit.prediction = fit.prediction.to(torch.float64) + out.correction.to(
+            fit.prediction.device)
+    if out.summary:
+        fit.summary.append(out.summary)
+    return fit, out.samples, out.record, out.warnings
+
+
 def reconstruct_capture(capture: Capture, options: RunOptions
                         ) -> tuple[Geometry, Samples, list[str]]:
     """Geometry (mesh or normal map, frame-checked) and per-pixel samples; their warnings."""
@@ -241,8 +286,8 @@ def run_capture(capture_dir: str | Path, out_dir: str | Path,
             from brdfcap.capture.simulate import render_accuracy_warnings
             warnings += render_accuracy_warnings(capture_dir)
     with stage("fit"):
-        fit = fit_capture(cap, samples, opts)
-        footprint, fp_warn = footprint_check(capture_dir, samples, fit)
+        fit, samples, footprint, fp_warn = fit_with_footprint(cap, capture_dir, geom, samples,
+                                                              opts)
     with stage("report"):
         warnings += fit.warnings + fp_warn
         results = results_record(capture=cap, capture_dir=capture_dir, geometry=geom,

@@ -33,7 +33,10 @@ from .types import (
     PointLight,
 )
 
-__all__ = ["load_config", "CAPTURE_FORMAT", "KNOWN_KEYS", "COLOUR_KEYS"]
+__all__ = ["load_config", "CAPTURE_FORMAT", "KNOWN_KEYS", "COLOUR_KEYS", "PIXEL_KINDS"]
+
+#: ``camera.pixel``: a pixel's value is its mean over the pixel, or its centre ray's radiance.
+PIXEL_KINDS = ("area", "point")
 
 #: Keys of the ``[colour]`` table (ColorChecker correction, ``capture.raw_load``).
 COLOUR_KEYS = frozenset({"checker_image", "checker_boxes", "checker_method", "checker_chart"})
@@ -48,7 +51,8 @@ KNOWN_KEYS: dict[str, set[str]] = {
     "geometry": {"mesh", "units", "normals", "scan", "smooth_normals", "vertex_normals",
                  "normal_map", "mask",
                  "frame_check"},
-    "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion"},
+    "camera": {"model", "width", "height", "fx", "fy", "cx", "cy", "pixel_size", "distortion",
+               "pixel"},
     "lighting": {"kind", "coefficients", "probe", "probe_lmax", "sources"},
     "images": {"file", "world_to_camera", "exposure", "light", "raw", "mask", "correspondences"},
     "noise": {"read", "gain", "relative"},
@@ -247,6 +251,11 @@ def _parse_camera(tab: dict, path: Path) -> CameraModel:
                      integer=True)
     cx = float(_number(tab, "cx", "camera.", path, default=width / 2))
     cy = float(_number(tab, "cy", "camera.", path, default=height / 2))
+    pixel = _get(tab, "pixel", "camera.", path, (str,), required=False, default="area")
+    if pixel not in PIXEL_KINDS:
+        raise CaptureError(f"key 'camera.pixel' must be 'area' (a camera: each value is the "
+                           f"pixel's mean) or 'point' (one ray through the pixel centre), got "
+                           f"{pixel!r}", path)
     if model == "pinhole":
         fx = float(_number(tab, "fx", "camera.", path, required=True, low=0, low_open=True))
         fy = float(_number(tab, "fy", "camera.", path, default=fx, low=0, low_open=True))
@@ -259,9 +268,9 @@ def _parse_camera(tab: dict, path: Path) -> CameraModel:
                                    "4, 5, 8, 12 or 14 finite numbers", path)
             dist = tuple(float(x) for x in d) if np.any(d != 0) else None
         return CameraModel("pinhole", width, height, fx=fx, fy=fy, cx=cx, cy=cy,
-                           distortion=dist)
+                           distortion=dist, pixel=pixel)
     ps = float(_number(tab, "pixel_size", "camera.", path, required=True, low=0, low_open=True))
-    return CameraModel("orthographic", width, height, cx=cx, cy=cy, pixel_size=ps)
+    return CameraModel("orthographic", width, height, cx=cx, cy=cy, pixel_size=ps, pixel=pixel)
 
 
 def _parse_pose(value: Any, key: str, path: Path) -> np.ndarray:

@@ -41,7 +41,7 @@ from brdfcap.core.errors import CaptureError
 
 from .images import read_pixels
 from .reference import render_lights
-from .simulate import pixel_offsets
+from .simulate import pixel_rule
 
 __all__ = ["DiligentData", "read_diligent", "import_diligent", "write_synthetic_diligent",
            "is_diligent_dir", "diligent_light_grid", "DILIGENT_WORLD_TO_CAMERA",
@@ -305,7 +305,7 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
     :func:`diligent_light_grid`, per-light RGB intensities drawn from ``intensity_range``,
     rendered by the reference renderer (:func:`brdfcap.capture.reference.render_lights`, the
     registered ``phong`` model's point evaluation) averaged over ``spp`` rays per pixel
-    (:func:`brdfcap.capture.simulate.pixel_offsets`; ``spp > 1`` averages the pixel footprint
+    (:func:`brdfcap.capture.simulate.pixel_rule`; ``spp > 1`` averages the pixel footprint
     as a camera does; the default 1 samples the centre, where the normals are given), radiance
     ``B``, pixel code
     ``round(65535 · clip(gain · B · (1 + noise_rel · N(0,1)), 0, 1))``: 16-bit quantisation,
@@ -346,12 +346,12 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
 
     # sub-pixel samples: normals, albedo and coverage of every ray of every object pixel
     subs = []
-    for du, dv in pixel_offsets(spp):
+    for (du, dv), wt in zip(*pixel_rule(spp)):
         sx, sy = (u[mask] + du - w / 2) / rad, -(v[mask] + dv - h / 2) / rad
         s2 = sx * sx + sy * sy
         inside = s2 < 1.0
         sn = np.stack([sx, sy, np.sqrt(np.clip(1.0 - s2, 0.0, None))], -1)
-        subs.append((torch.as_tensor(sn[inside]), kd_of(sx, sy)[inside], inside))
+        subs.append((torch.as_tensor(sn[inside]), kd_of(sx, sy)[inside], inside, wt))
     lobe = make_brdf("phong", kd=[0.0] * 3, ks=np.asarray(ks, np.float64), s=shininess)
     white = make_brdf("lambertian", kd=[1.0] * 3)
     dirs = diligent_light_grid(n_lights)
@@ -362,14 +362,14 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
     for k in range(n_lights):
         img = np.zeros((h, w, 3))
         acc = np.zeros((int(mask.sum()), 3))
-        for sn, skd, inside in subs:
+        for sn, skd, inside, wt in subs:
             wo = torch.zeros_like(sn)
             wo[:, 2] = 1.0
             wi = torch.as_tensor(dirs[k]).expand_as(sn)
             e = torch.as_tensor(ints[k])
             b = render_lights(white, sn, wo, wi, e).numpy() * skd + \
                 render_lights(lobe, sn, wo, wi, e).numpy()
-            acc[inside] += b / len(subs)
+            acc[inside] += b * wt
         img[mask] = acc
         img = gain * img
         if noise_rel > 0:

@@ -24,7 +24,6 @@ Renderers (scene key ``renderer``):
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import shutil
@@ -55,7 +54,7 @@ from .reference import (
 from .types import CameraModel, NoiseModel
 
 __all__ = ["Scene", "load_scene", "simulate", "look_at", "builtin_scene_path", "view_poses",
-           "render_accuracy_warnings", "RENDERERS", "SCENE_KEYS", "HIGH_LMAX"]
+           "render_accuracy_warnings", "pixel_rule", "RENDERERS", "SCENE_KEYS", "HIGH_LMAX"]
 
 RENDERERS = ("reference", "sh")
 #: Band to which ``ground_truth.json`` records the true SH projection of the lighting.
@@ -369,6 +368,11 @@ def load_scene(path: str | Path) -> Scene:
     if not (render["rel_tol"] > 0 and render["spp"] >= 1 and render["max_samples"] >= 16):
         raise CaptureError("scene [render]: need rel_tol > 0, spp >= 1, max_samples >= 16",
                            path)
+    if math.isqrt(render["spp"]) ** 2 != render["spp"]:
+        raise CaptureError(f"scene key 'render.spp' = {render['spp']} must be 1 or a square "
+                           f"(4, 9, 16, ...): each pixel is integrated by the k x k "
+                           f"Gauss-Legendre rule; use {math.isqrt(render['spp']) ** 2 or 1} "
+                           f"or {(math.isqrt(render['spp']) + 1) ** 2}", path)
     if render["probe_interpolation"] not in ("bilinear", "cubic"):
         raise CaptureError("scene key 'render.probe_interpolation' must be bilinear or cubic",
                            path)
@@ -469,21 +473,29 @@ def _scene_light(light: dict):
                             radiance=np.asarray(light.get("radiance", [1, 1, 1]), np.float64))
 
 
-def pixel_offsets(spp: int) -> np.ndarray:
-    """``(spp, 2)`` sub-pixel offsets in ``[-½, ½)²`` (a rank-1 lattice; ``(0, 0)`` for 1).
+def pixel_rule(spp: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(offsets (spp, 2), weights (spp,))``: the pixel's mean as a quadrature rule.
 
-    Stratified in ``u``, golden-ratio spaced in ``v`` (Fibonacci lattice), so any ``spp``
-    covers the pixel evenly.
+    ``spp = k²``: the ``k x k`` Gauss-Legendre product rule on the unit pixel ``[-½, ½]²``
+    (weights sum to 1), exact for the mean of any polynomial of degree ``2k - 1`` in each
+    coordinate (Abramowitz & Stegun 1964, 25.4.29): a box pixel of 100% fill factor, to the
+    order a smooth image needs (16 rays: degree 7). ``spp = 1`` is the pixel centre, as the
+    fits sample without the footprint model. (An equal-weight rank-1 lattice used before
+    shifted the pixel's centroid by up to 0.05 px, a first-order error, and missed the second
+    moment by 1-6%.)
+
+    Raises
+    ------
+    ValueError
+        ``spp`` not a square.
     """
-    if spp == 1:
-        return np.zeros((1, 2))
-    k = np.arange(spp) + 0.5
-    return np.stack([k / spp, (k * 0.6180339887498949) % 1.0], -1) - 0.5
-
-
-def _shifted(cam: CameraModel, du: float, dv: float) -> CameraModel:
-    """Return the camera whose pixel-centre rays pass through ``(u + ½ + du, v + ½ + dv)``."""
-    return dataclasses.replace(cam, cx=cam.cx - du, cy=cam.cy - dv)
+    k = math.isqrt(spp) if spp >= 1 else 0
+    if k < 1 or k * k != spp:
+        raise ValueError(f"spp = {spp} is not a square")
+    x, w = np.polynomial.legendre.leggauss(k)
+    x, w = 0.5 * x, 0.5 * w
+    du, dv = np.meshgrid(x, x)
+    return np.stack([du.ravel(), dv.ravel()], -1), np.outer(w, w).ravel()
 
 
 class _Renderer:
@@ -585,20 +597,20 @@ def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | N
                  interreflection: dict | None = None):
     """Render one view; returns ``(image, n_shadowed_pixels)``.
 
-    Each pixel averages ``[render] spp`` rays (:func:`pixel_offsets`); a ray that misses the
+    Each pixel averages ``[render] spp`` rays (:func:`pixel_rule`); a ray that misses the
     object sees black. Shadow rays are cast only when ``cast_shadows`` (a non-convex mesh under
     a known light); one-bounce interreflection (:mod:`brdfcap.capture.interreflection`) only
     when ``interreflection`` is given (its statistics are accumulated there).
     """
-    from brdfcap.reconstruct.camera import camera_rays
+    from brdfcap.reconstruct.camera import camera_rays, shifted_camera
     from brdfcap.reconstruct.geometry import add_lighting, cast_view, light_at
 
     renderer = renderer or _Renderer(scene)
     spp = scene.render.get("spp", 1)
     img = np.zeros((scene.camera.height, scene.camera.width, 3))
     n_shadow = 0.0
-    for du, dv in pixel_offsets(spp):
-        cam = _shifted(scene.camera, du, dv)
+    for (du, dv), wt in zip(*pixel_rule(spp)):
+        cam = shifted_camera(scene.camera, du, dv)
         if scene.shape == "sphere":
             o, d = camera_rays(cam, pose)
             bq = (o * d).sum(-1)
@@ -617,7 +629,7 @@ def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | N
         if scene.lighting_kind == "directional" and scene.shape == "mesh":
             add_lighting(g, _scene_light(light), scene_rc, mesh, cast_shadows)
             if g.shadow is not None:
-                n_shadow += float(g.shadow.sum()) / spp
+                n_shadow += float(g.shadow.sum()) * wt
                 lit = hit & ~g.shadow
         nrm = torch.as_tensor(normal[lit], dtype=torch.float64)
         wo = torch.as_tensor(wo_img[lit], dtype=torch.float64)
@@ -630,7 +642,7 @@ def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | N
         else:
             wi_np, irr_np, _ = light_at(_scene_light(light), p[lit])
             rad = renderer.light(nrm, wo, torch.as_tensor(wi_np), torch.as_tensor(irr_np))
-        img[lit] += rad.numpy() / spp
+        img[lit] += rad.numpy() * wt
         if interreflection is not None and hit.any():
             env = (renderer.environment_radiance if scene.lighting_kind == "environment"
                    else None)
@@ -639,7 +651,7 @@ def _render_view(scene: Scene, mesh, scene_rc, pose: np.ndarray, light: dict | N
                 scene_rc, mesh, _one_bounce(scene, renderer, scene_rc, mesh, light,
                                             cast_shadows),
                 environment=env, directions=interreflection["directions"])
-            img[hit] += d / spp
+            img[hit] += d * wt
             interreflection["rays"] += st["rays"]
             interreflection["max_added"] = max(interreflection["max_added"],
                                                float(d.max(initial=0.0)))
@@ -923,7 +935,9 @@ def simulate(scene_path: str | Path, out_dir: str | Path) -> Path:
     if inter is not None:
         effects.append("interreflection:1-bounce")
     cam = scene.camera
-    cam_tab = {"model": cam.model, "width": cam.width, "height": cam.height}
+    cam_tab = {"model": cam.model, "width": cam.width, "height": cam.height,
+               # one ray per pixel is the centre's radiance; more, the pixel's mean
+               "pixel": "point" if scene.render.get("spp", 1) == 1 else "area"}
     if cam.model == "pinhole":
         cam_tab.update(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy)
     else:

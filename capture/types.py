@@ -46,6 +46,10 @@ class CameraModel:
     cy: float | None = None
     pixel_size: float | None = None
     distortion: tuple[float, ...] | None = None  # OpenCV (k1, k2, p1, p2[, k3...]), pinhole
+    #: what a pixel's value is: ``"area"``, the mean over the pixel (a camera's sensor; the
+    #: fits model the footprint, ``brdfcap.footprint``), or ``"point"``, the radiance along
+    #: the centre ray (one ray per pixel, as a renderer without antialiasing writes)
+    pixel: str = "area"
 
     def K(self) -> np.ndarray:
         """3x3 pinhole intrinsic matrix (pinhole cameras only)."""

@@ -159,6 +159,12 @@ class BilinearFit:
     #: why ``kd`` has no interval (:data:`AMBIGUITY_REASON`, :data:`LAPLACE_REASON`), or None
     kd_reason: str | None = None
 
+    def predict(self, normal: torch.Tensor, reflected: torch.Tensor) -> torch.Tensor:
+        """Radiance ``(N, C)`` of the fitted factors at unit ``normal``, ``reflected``."""
+        return _prediction(normal.to(torch.float64), reflected.to(torch.float64),
+                           self.lighting.coefficients, self.kd, self.filter,
+                           self.lighting.lmax)
+
     def to_results(self) -> dict:
         """Keys for ``results.json``."""
         def fin(v):

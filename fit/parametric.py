@@ -37,7 +37,8 @@ from .sh import band_of_index, real_sh
 from .solve import noise_weights, reported_chi2
 
 __all__ = ["ParametricFit", "fit_brdf_parametric", "fit_brdf_parametric_sh", "parametric_models",
-           "PARAMETRIC_MODELS", "COARSE_SAMPLES", "COARSE_ANGLES", "COARSE_GRID", "SHAPE_STEP",
+           "predict_parametric_sh", "PARAMETRIC_MODELS", "COARSE_SAMPLES", "COARSE_ANGLES",
+           "COARSE_GRID", "SHAPE_STEP",
            "LOCAL_LIGHTING_MEMORY", "MIN_FIT_SAMPLES",
            "SHAPE_BOUNDS"]
 
@@ -480,17 +481,7 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
     fd = diffuse_filter(k).to(n.device)[band_of_index(k).to(n.device)]
     diffuse = real_sh(n, k) @ (fd[:, None] * L)  # (N, C): radiance per unit kd
 
-    def basis_of(lighting: LocalLighting, dd_):
-        def basis(theta, rule_at=None):
-            if proto.shape_parameter is None:
-                return dd_[..., None], torch.zeros_like(dd_)
-            at = float(theta if rule_at is None else rule_at)
-            m = make_brdf(model, validate=False, kd=torch.zeros(b.shape[1]),
-                          **{proto.shape_parameter: at})
-            a, q = lighting.radiance(m, shape=None if rule_at is None else float(theta))
-            return torch.stack([dd_, a], -1), (torch.zeros_like(a) if q is None else q)
-        return basis
-
+    basis_of = _basis_factory(model, proto, b.shape[1])
     used = torch.nonzero((w > 0).any(-1)).flatten()
     if used.numel() < 3:
         raise FitError(f"only {used.numel()} usable samples: too few to fit a {model} BRDF")
@@ -628,6 +619,51 @@ def fit_brdf_parametric_sh(normal: torch.Tensor, wo: torch.Tensor, radiance: tor
 LOCAL_LIGHTING_MEMORY = 0.25
 #: The subset is never smaller than this.
 MIN_FIT_SAMPLES = 2000
+
+
+def _basis_factory(model: str, proto: BRDFModel, channels: int):
+    """``basis_of(lighting, diffuse) -> basis(θ, rule_at=None) -> (columns, offset)``.
+
+    The forward model of :func:`fit_brdf_parametric_sh` at a lobe shape ``θ``: columns
+    ``(N, C, J)`` of the linear parameters (``kd``, then the specular scale) and the offset
+    ``(N, C)`` (e.g. Schlick's ``c⁵`` part), from the lighting in the samples' frames
+    (:class:`~brdfcap.fit.exact_design.LocalLighting`) and the radiance per unit ``kd``.
+    ``rule_at``: the quadrature rule of that shape, held while ``θ`` moves (the Jacobian's
+    central difference).
+    """
+    def basis_of(lighting: LocalLighting, dd_):
+        def basis(theta, rule_at=None):
+            if proto.shape_parameter is None:
+                return dd_[..., None], torch.zeros_like(dd_)
+            at = float(theta if rule_at is None else rule_at)
+            m = make_brdf(model, validate=False, kd=torch.zeros(channels),
+                          **{proto.shape_parameter: at})
+            a, q = lighting.radiance(m, shape=None if rule_at is None else float(theta))
+            return torch.stack([dd_, a], -1), (torch.zeros_like(a) if q is None else q)
+        return basis
+    return basis_of
+
+
+def predict_parametric_sh(fit: ParametricFit, normal: torch.Tensor, wo: torch.Tensor,
+                          light_sh: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    """Radiance ``(N, C)`` of a :func:`fit_brdf_parametric_sh` result at other geometry.
+
+    The same forward model (the reflection equation by quadrature, R&H 2001 eq. 1) under
+    ``light_sh`` (the lighting the fit used) at unit ``normal`` and ``wo`` ``(N, 3)``.
+    """
+    f64 = torch.float64
+    n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
+    o = torch.nn.functional.normalize(wo.to(f64), dim=-1)
+    L = light_sh.to(device=n.device, dtype=f64)
+    k = int(math.isqrt(L.shape[0])) - 1
+    proto = _prototype(fit.model, L.shape[1])
+    r = 2.0 * (n * o).sum(-1, keepdim=True) * n - o
+    fd = diffuse_filter(k).to(n.device)[band_of_index(k).to(n.device)]
+    diffuse = real_sh(n, k) @ (fd[:, None] * L)
+    per = 8 * L.shape[1] * (k + 1) * (k + 2) // 2  # bytes of one sample's local lighting
+    chunk = max(256, min(chunk, (64 << 20) // per))
+    return _predict_all(fit, proto, _basis_factory(fit.model, proto, L.shape[1]), n, r,
+                        diffuse, None, L, k, None, chunk)[0]
 
 
 def _predict_all(fit: ParametricFit, proto: BRDFModel, basis_of, n, r, diffuse, var, L,

@@ -158,6 +158,12 @@ class FitResult:
         Work on the *final* solve only, ``finalize(result)`` in place — problems brdf and
         both's split-half refits, which a first solve followed by the noise reweighting
         would do for nothing; :func:`brdfcap.fit.problems.solve_problem` calls it once.
+    predict : callable or None
+        ``predict(samples) -> (N, C)``: the fitted model's radiance at other sample geometry
+        (``samples`` as the fit's, e.g. the rays through other points of the same pixels:
+        the pixel-footprint model of :mod:`brdfcap.footprint`), by the forward model
+        :attr:`prediction` comes from; ``None`` where a problem offers none (its prediction
+        carries a per-pixel albedo, or its model is not written for other geometry).
     """
 
     problem: str
@@ -174,6 +180,7 @@ class FitResult:
     bands: dict[str, list[dict]] = field(default_factory=dict)
     restart: dict = field(default_factory=dict)
     finalize: Any = None
+    predict: Any = None
 
     def __post_init__(self) -> None:
         if not self.bands and self.lighting is not None and getattr(self.lighting, "bands",

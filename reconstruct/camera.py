@@ -19,6 +19,7 @@ through the *undistorted* position of every pixel centre, found with kornia's
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from brdfcap.capture.types import CameraModel
 from brdfcap.core.errors import GeometryError
 
 __all__ = ["camera_rays", "camera_center", "undistorted_pixel_grid", "check_distortion",
-           "UNDISTORT_ITERS", "UNDISTORT_TOL_PX"]
+           "shifted_camera", "UNDISTORT_ITERS", "UNDISTORT_TOL_PX"]
 
 #: Fixed-point steps of the inverse distortion (kornia ``undistort_points``). A real lens
 #: converges in a handful; 20 leave round-off for any model that converges at all.
@@ -44,6 +45,16 @@ def camera_center(world_to_camera: np.ndarray) -> np.ndarray:
     """World position of the camera centre, ``C = -R^T t``."""
     r, t = world_to_camera[:, :3], world_to_camera[:, 3]
     return -r.T @ t
+
+
+def shifted_camera(camera: CameraModel, du: float, dv: float) -> CameraModel:
+    """Return the camera whose pixel-centre rays pass through ``(u + ½ + du, v + ½ + dv)``.
+
+    The principal point moves by ``(-du, -dv)`` pixels; with ``camera.distortion`` the
+    distortion centre moves with it, a sub-pixel shift whose effect on a ray is the
+    distortion's gradient times that shift (negligible for a calibrated lens).
+    """
+    return dataclasses.replace(camera, cx=camera.cx - du, cy=camera.cy - dv)
 
 
 def _K(camera: CameraModel) -> torch.Tensor:

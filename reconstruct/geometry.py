@@ -15,13 +15,13 @@ from brdfcap.capture.types import CameraModel, Capture
 
 from brdfcap.core.errors import GeometryError
 
-from .camera import camera_rays, check_distortion
+from .camera import camera_rays, check_distortion, shifted_camera
 from .mesh import Mesh
 from .shadows import ShadowPolicy, shadow_mask, shadow_policy
 
 __all__ = ["ViewGeometry", "Geometry", "Samples", "CenteredScene", "cast_view", "compute_geometry",
            "build_samples", "light_at", "GRAZING_COS", "EDGE_PX", "DISCONTINUITY_SIN",
-           "compute_capture_geometry"]
+           "compute_capture_geometry", "subpixel_samples", "PIXEL_GAUSS_OFFSETS"]
 
 #: Pixels whose shading normal makes an angle above ``arccos(GRAZING_COS)`` (~84.3°) with the view
 #: direction are dropped: there the normal error of the scan and the pixel footprint make the
@@ -112,6 +112,10 @@ class Samples:
 
     def __len__(self) -> int:
         return int(self.normal.shape[0])
+
+    def take(self, rows: torch.Tensor) -> "Samples":
+        """Return the samples at ``rows`` (a boolean mask or indices), every field alike."""
+        return Samples(**{k: None if v is None else v[rows] for k, v in vars(self).items()})
 
 
 class CenteredScene:
@@ -450,6 +454,80 @@ def build_samples(capture: Capture, geometry: Geometry,
                    wi=cat("wi") if has_light else None,
                    light_radiance=cat("lr") if has_light else None,
                    position=cat("pos"), triangle=cat("tri", torch.long))
+
+
+#: Sub-pixel offsets of the pixel-footprint model (:func:`subpixel_samples`): the 2 x 2
+#: Gauss-Legendre rule on the unit pixel, ``(±1/(2√3), ±1/(2√3))``. Its mean is the pixel's
+#: mean of any bicubic image exactly (the centre ray misses it by ``(B_xx + B_yy)/24``, the
+#: 4-ray rule by a fourth-derivative term ``(B_xxxx + B_yyyy)/4320``; Abramowitz & Stegun 1964,
+#: 25.4.29 on ``[-½, ½]``).
+PIXEL_GAUSS_OFFSETS = tuple((su * 0.5 / 3 ** 0.5, sv * 0.5 / 3 ** 0.5)
+                            for sv in (-1.0, 1.0) for su in (-1.0, 1.0))
+
+
+def subpixel_samples(capture: Capture, geometry: Geometry, samples: Samples,
+                     offsets=PIXEL_GAUSS_OFFSETS) -> tuple[list[Samples], torch.Tensor]:
+    """Return the geometry of every sample's pixel at sub-pixel ``offsets`` (pixel units).
+
+    One :class:`Samples` per offset, row for row with ``samples`` (the same view, pixel,
+    radiance and variance; the normal, directions, light and hit point of the ray through
+    ``(u + ½ + du, v + ½ + dv)``), cast against ``geometry.mesh`` as :func:`cast_view` casts
+    the centre rays, with shadow rays where ``geometry`` cast them. ``keep`` ``(N,)``: the
+    samples whose every sub-pixel ray is valid (on the mesh, not grazing, not at an edge) and
+    lit; a pixel that straddles a silhouette, a depth edge or a shadow boundary mixes what no
+    one model of its rays renders, and is left out of a fit that models the footprint
+    (:mod:`brdfcap.footprint`).
+
+    Raises
+    ------
+    GeometryError
+        Geometry from a normal map (one normal per pixel, nothing below it to cast against).
+    """
+    mesh = geometry.mesh
+    if mesh is None:
+        raise GeometryError("the pixel footprint needs a mesh to cast sub-pixel rays against "
+                            "(geometry from a normal map has one normal per pixel)",
+                            capture.config.toml_path)
+    scene = _scene(mesh)
+    cast = geometry.shadows is not None and geometry.shadows.cast
+    dev = samples.normal.device
+    views = samples.view.cpu().numpy()
+    pix = samples.pixel.cpu().numpy()
+    n = len(samples)
+    lit = samples.wi is not None
+    cols = [{k: np.zeros((n, 3)) for k in ("n", "wo", "pos", "wi", "lr")} | {
+        "tri": np.full(n, -1, np.int64)} for _ in offsets]
+    keep = np.ones(n, bool)
+    cam = capture.config.camera
+    for view in capture.views:
+        rows = np.nonzero(views == view.index)[0]
+        if rows.size == 0:
+            continue
+        r, c = pix[rows, 0], pix[rows, 1]
+        for k, (du, dv) in enumerate(offsets):
+            g = cast_view(scene, mesh, shifted_camera(cam, du, dv), view.spec.world_to_camera)
+            ok = g.valid[r, c]
+            col = cols[k]
+            col["n"][rows], col["wo"][rows] = g.normal[r, c], g.wo[r, c]
+            col["pos"][rows], col["tri"][rows] = g.position[r, c], g.triangle[r, c]
+            if view.spec.light is not None:
+                add_lighting(g, view.spec.light, scene, mesh, cast)
+                col["wi"][rows], col["lr"][rows] = g.wi[r, c], g.light_irradiance[r, c]
+                if g.shadow is not None:
+                    ok &= ~g.shadow[r, c]
+            keep[rows] &= ok
+    out = []
+    for col in cols:
+        def t(a, dtype=torch.float64):  # noqa: E306
+            return torch.as_tensor(a, dtype=dtype, device=dev)
+        nrm, wo = t(col["n"]), t(col["wo"])
+        out.append(Samples(normal=nrm, wo=wo, reflected=2.0 * (nrm * wo).sum(-1, keepdim=True)
+                           * nrm - wo, radiance=samples.radiance, variance=samples.variance,
+                           view=samples.view, pixel=samples.pixel,
+                           wi=t(col["wi"]) if lit else None,
+                           light_radiance=t(col["lr"]) if lit else None,
+                           position=t(col["pos"]), triangle=t(col["tri"], torch.long)))
+    return out, torch.as_tensor(keep, device=dev)
 
 
 def compute_capture_geometry(capture: Capture, **kwargs) -> Geometry:

@@ -32,7 +32,8 @@ from .base import (
 )
 
 __all__ = ["PROBLEMS", "FIT_SCHEMA", "Problem", "FitOptions", "Known", "FitResult", "Estimate",
-           "solve_problem", "reweighted_samples", "REWEIGHT_MIN_CHANGE", "REWEIGHT_MAX_GAIN",
+           "solve_problem", "solve_unfinished", "finish_problem", "reweighted_samples",
+           "REWEIGHT_MIN_CHANGE", "REWEIGHT_MAX_GAIN",
            "register_problem",
            "get_problem", "check_lmax", "brdf_from_material",
            "lighting_json", "conditioning_json", "auto", "lighting", "brdf", "brdf_isotropic",
@@ -47,6 +48,16 @@ def solve_problem(name: str, samples, known: Known, options: FitOptions) -> FitR
     brdfcap.core.errors.FitError
         Unknown name (the valid ones listed), or what the problem needs is missing.
     """
+    return finish_problem(*solve_unfinished(name, samples, known, options), known)
+
+
+def solve_unfinished(name: str, samples, known: Known, options: FitOptions):
+    """:func:`solve_problem` without the final solve's own work: ``(result, samples fitted)``.
+
+    ``samples fitted`` are ``samples`` with the noise reweighting's variance where it ran;
+    :func:`finish_problem` completes the result. A caller that may solve again on other data
+    (the pixel-footprint model, :mod:`brdfcap.footprint`) finishes its last solve only.
+    """
     problem = get_problem(name)
     res = problem.solve(samples, known, options)
     if problem.reweight:
@@ -57,6 +68,15 @@ def solve_problem(name: str, samples, known: Known, options: FitOptions) -> FitR
             res = problem.solve(samples, known, replace(options, start=start))
             res.record["noise_reweighting"] = note
             res.summary.append(note["text"])
+    return res, samples
+
+
+def finish_problem(res: FitResult, samples, known: Known) -> FitResult:
+    """Do a final solve's own work on ``res`` (fitted to ``samples``) and return it.
+
+    The result's ``finalize`` (e.g. the split-half refits), the schema tag and the adequacy
+    verdict of problems without one of their own.
+    """
     if res.finalize is not None:  # the final solve's own work (e.g. the split-half refits)
         res.finalize(res)
         res.finalize = None

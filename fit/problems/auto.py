@@ -61,7 +61,9 @@ def lambertian_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
                        "parameters": {"albedo": albedo.tolist(), "albedo_source": src}}}
     est = [lighting_estimate(fit),
            Estimate("albedo", albedo, None, "channel", known=True, note=src)]
-    return FitResult("auto", est, pred, record, lighting=fit, known_albedo=albedo)
+    return FitResult("auto", est, pred, record, lighting=fit, known_albedo=albedo,
+                     predict=lambda s: lambertian_radiance_sh(s.normal, fit.coefficients,
+                                                              albedo.to(s.normal.device)))
 
 
 def lambertian_albedo(samples, known: Known, opts: FitOptions) -> FitResult:
@@ -88,7 +90,9 @@ def lambertian_albedo(samples, known: Known, opts: FitOptions) -> FitResult:
             f"their errors (chi2 up to {max(rep['chi2']):.3g} > {rep['limit']:.3g}): the "
             f"errors are widened up to {max(rep['widened_by']):.2g}x (Birge ratio)"))
     est = [Estimate("albedo", fit.albedo, fit.stderr, "channel")]
-    return FitResult("auto", est, pred, record, albedo=fit)
+    return FitResult("auto", est, pred, record, albedo=fit,
+                     predict=lambda s: lambertian_radiance_directional(
+                         s.normal, s.wi, s.light_radiance, fit.albedo.to(s.normal.device)))
 
 
 def problem_auto(samples, known: Known, opts: FitOptions) -> FitResult:

@@ -74,7 +74,7 @@ def problem_both(samples, known: Known, opts: FitOptions) -> FitResult:
     return FitResult("both", est, res.prediction, res.to_results(), summary=res.summary(),
                      ambiguities=list(res.ambiguities), lighting=res.lighting,
                      bands={"lighting": res.lighting.bands, "brdf": res.filter_bands},
-                     finalize=finalize)
+                     finalize=finalize, predict=lambda s: res.predict(s.normal, s.reflected))
 
 
 register_problem(Problem(

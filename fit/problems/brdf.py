@@ -25,7 +25,12 @@ from ..conditioning import (
     residual_adequacy,
 )
 from ..inverse_brdf import fit_brdf_sh, horizon_lines
-from ..parametric import fit_brdf_parametric, fit_brdf_parametric_sh, parametric_models
+from ..parametric import (
+    fit_brdf_parametric,
+    fit_brdf_parametric_sh,
+    parametric_models,
+    predict_parametric_sh,
+)
 from ..records import conditioning_json
 from ..result import Estimate, FitResult
 from ..sh import band_of_index, real_sh
@@ -79,7 +84,9 @@ def _directional(samples, known: Known, opts: FitOptions) -> FitResult:
 
     summ = [f"Problem 2 (inverse BRDF, known distant lights): {_fitted_words(f, model)}."]
     return FitResult("brdf", _parametric_estimates(f), pred, rec, summary=summ,
-                     finalize=finalize)
+                     finalize=finalize,
+                     predict=lambda s: render_directional(f.spec, s.normal, s.wo, s.wi,
+                                                          s.light_radiance))
 
 
 def _tail_empty(fit) -> bool:
@@ -136,10 +143,15 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
     band = band_of_index(lw)
     fpad = torch.zeros(lw + 1, light_f.shape[1], dtype=torch.float64)
     fpad[: kf + 1] = fit.filter if fit.internal_filter is None else fit.internal_filter
-    pred = real_sh(samples.reflected, lw) @ (fpad[band] * lp)
-    if fit.kd is not None:
-        pred = pred + (real_sh(samples.normal, lw) @ (diffuse_filter(lw)[band][:, None] * lp)
-                       ) * fit.kd
+
+    def filter_predict(s):
+        out = real_sh(s.reflected, lw) @ (fpad[band] * lp)
+        if fit.kd is not None:
+            out = out + (real_sh(s.normal, lw) @ (diffuse_filter(lw)[band][:, None] * lp)
+                         ) * fit.kd
+        return out
+
+    pred = filter_predict(samples)
     sh_json = fit.to_json()
     rec = {"brdf": {"model": "sh-radial", "parameters": {"kd": None if fit.kd is None
                                                          else fit.kd.tolist()},
@@ -168,7 +180,8 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
                     "SH-domain filter alone (name one with --brdf).")
         model = None
     if model is None or model == "sh-radial":
-        return FitResult("brdf", est, pred, rec, summary=summ, bands={"brdf": fit.bands})
+        return FitResult("brdf", est, pred, rec, summary=summ, bands={"brdf": fit.bands},
+                         predict=filter_predict)
     # a parametric model named (--brdf or [material].model): fitted on the exact reflection
     # equation under the known lighting; the radial filter above stays as the measurement
     # that assumes no model (issue 12: "always show the measured rho_l")
@@ -255,7 +268,8 @@ def _sh(samples, known: Known, opts: FitOptions) -> FitResult:
 
     return FitResult("brdf", _parametric_estimates(par) + [filter_est], par.prediction, rec,
                      summary=summ, warnings=warns, bands={"brdf": fit.bands}, restart=restart,
-                     finalize=finalize)
+                     finalize=finalize,
+                     predict=lambda s: predict_parametric_sh(par, s.normal, s.wo, lighting))
 
 
 def _widen(par, factor: float, why: str | None = None) -> None:

@@ -56,8 +56,12 @@ def problem_brdf_isotropic(samples, known: Known, opts: FitOptions) -> FitResult
                                 "rows", determined=sol.determined[rows],
                                 labels=[(idx[j][0], idx[j][2]) for j in rows],
                                 note="R&H 2001 eq. 16; CSV l = l, m = |q|"))
+    def predict(s):
+        return torch.einsum("ncj,jc->nc", isotropic_design(s.normal, s.wo, light, lmax, lmax)[0],
+                            sol.coefficients)
+
     return FitResult("brdf-isotropic", est, pred, rec, summary=summ,
-                     bands={"brdf": fit["bands"]})
+                     bands={"brdf": fit["bands"]}, predict=predict)
 
 
 register_problem(Problem(

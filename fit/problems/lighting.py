@@ -75,7 +75,10 @@ def problem_lighting(samples, known: Known, opts: FitOptions) -> FitResult:
             f"(2001) at the noise level ε = {fit.noise_level:.3g}.",
             f"Forward model of the specular part: {fit.design['text']}."]
     est = [lighting_estimate(fit)] + material_estimates(spec, params)
-    return FitResult("lighting", est, pred, rec, summary=summ, lighting=fit)
+    inner = fit.internal_coefficients is not None
+    return FitResult("lighting", est, pred, rec, summary=summ, lighting=fit,
+                     predict=lambda s: predict_radiance(fit, s.normal, s.reflected,
+                                                        internal=inner))
 
 
 register_problem(Problem("lighting", problem_lighting,
