@@ -318,7 +318,7 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
             f"Gauss-Legendre points), not its centre ray, which missed it by {effect:.3g} "
             f"standard errors (coherent effect over {int(good.sum())} samples); "
             f"{len(changes)} refit(s) on the corrected data moved "
-            f"{_shift_words(shifts) or 'nothing'}"
+            f"{_shift_words(shifts) or 'no estimate with a finite error'}"
             + (f"; {rec['left_out']} pixels whose footprint crosses an edge or a shadow "
                "boundary left out" if rec["left_out"] else "") + ".")
     warns = [] if settled else [

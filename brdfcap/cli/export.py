@@ -26,7 +26,7 @@ from brdfcap.export import (
     write_vertex_ply,
 )
 from brdfcap.fit.envmap import WINDOWS
-from brdfcap.pipeline import RunOptions, fit_capture, reconstruct_capture
+from brdfcap.pipeline import RunOptions, fit_with_footprint, reconstruct_capture
 
 from .common import CliState, fail
 
@@ -43,7 +43,7 @@ def maps_of_run(results: dict, out: Path, results_path: Path) -> list[Path]:
     opts = RunOptions(**{k: v for k, v in (results.get("options") or {}).items() if k in known})
     cap = load_capture(cap_dir)
     geom, samples, _ = reconstruct_capture(cap, opts)
-    fit = fit_capture(cap, samples, opts)
+    fit, samples, _, _ = fit_with_footprint(cap, cap_dir, geom, samples, opts)
     normal_map = cap.config.geometry_source == "normal_map"
     written = write_maps(out / "maps", samples, fit, [v.radiance.shape[:2] for v in cap.views],
                          view_names(cap), one_camera=normal_map)

@@ -77,6 +77,7 @@ def test_typed_tables_and_scalar_colours(tmp_path):
     ("f0 = 0.04", "f0 = [0.04, 0.04]", "material.f0"),
     ("albedo = [0.5, 0.4, 0.3]", "albedo = -0.1", "material.albedo"),
     ("sources = [[0.0, 0.0, 2.0]]", "sources = [[0.0, 0.0, 0.0]]", "lighting.sources"),
+    ("fx = 40.0", 'fx = 40.0\npixel = "box"', "camera.pixel"),
 ])
 def test_bad_numbers_name_key_and_file(tmp_path, old, new, key):
     assert old in BASE
@@ -94,6 +95,13 @@ def test_bad_pose_says_what_is_wrong(tmp_path, new, says):
     assert old in BASE
     msg = _one_line_error(tmp_path, BASE.replace(old, new, 1), "images[0].world_to_camera")
     assert says in msg
+
+
+def test_camera_pixel_says_what_a_value_is(tmp_path):
+    """``camera.pixel``: a camera's pixel mean by default, or the centre ray's radiance."""
+    assert load_config(_write(tmp_path, BASE)).camera.pixel == "area"
+    text = BASE.replace("fx = 40.0", 'fx = 40.0\npixel = "point"')
+    assert load_config(_write(tmp_path, text)).camera.pixel == "point"
 
 
 def test_same_image_twice_is_refused(tmp_path):

@@ -216,3 +216,23 @@ def test_a_material_that_reflects_nothing_is_one_line(tmp_path):
     (cap / "capture.toml").write_text(lamb)
     with pytest.raises(BrdfcapError, match=r"\[material\] albedo is 0 in channel R, G, B"):
         run_capture(cap, tmp_path / "lamb", RunOptions(lmax=2))
+
+
+def test_pixel_rays_must_form_a_gauss_rule_and_the_capture_says_which_pixel(tmp_path):
+    """``[render] spp``: 1 (the centre, ``camera.pixel = "point"``) or k² (the k x k
+    Gauss-Legendre rule, ``"area"``); anything else is refused naming the key."""
+    from brdfcap.core.errors import CaptureError
+
+    (tmp_path / "s.toml").write_text(SCENE.format(top="").replace("spp = 1", "spp = 8"))
+    with pytest.raises(CaptureError, match=r"render\.spp.*= 8.*use 4 or 9"):
+        load_scene(tmp_path / "s.toml")
+    cap = simulate(_scene(tmp_path, 1), tmp_path / "c1")
+    assert 'pixel = "point"' in (cap / "capture.toml").read_text()
+    cap = simulate(_scene(tmp_path, 4), tmp_path / "c4")
+    assert 'pixel = "area"' in (cap / "capture.toml").read_text()
+
+
+def _scene(tmp_path, spp):
+    p = tmp_path / f"s{spp}.toml"
+    p.write_text(SCENE.format(top="").replace("spp = 1", f"spp = {spp}"))
+    return p
