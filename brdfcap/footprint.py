@@ -14,8 +14,9 @@ the mean of those four differs from the centre ray's by more than
 :data:`FOOTPRINT_MODEL_EFFECT` (coherent effect in standard errors) the problem is solved again
 on ``b - (mean - centre)`` until that difference settles — a fixed point at which the
 *pixel-averaged* model explains the data (``docs/fitting.md``, "The pixel footprint").
-Where the footprint cannot be modelled (no forward model for other geometry, geometry from a
-normal map) :func:`footprint_check` estimates the term from the fit's own image and warns.
+Where the footprint cannot be modelled (geometry from a normal map: no surface to cast
+sub-pixel rays against) :func:`footprint_check` estimates the term from the fit's own image
+and warns.
 """
 
 from __future__ import annotations

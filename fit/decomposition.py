@@ -109,6 +109,22 @@ class DecomposedLighting:
     parts: Decomposition
     adequacy: dict
     design: str
+    material: BRDFSpec | None = None
+    source_dirs: torch.Tensor | None = None
+
+    def predict(self, normal: torch.Tensor, reflected: torch.Tensor) -> torch.Tensor:
+        """Radiance ``(N, C)`` of the fitted components at other unit normals and reflections.
+
+        The same forward model as :attr:`parts` (``design``), e.g. a pixel's sub-pixel rays.
+        """
+        f64 = torch.float64
+        n = torch.nn.functional.normalize(normal.to(f64), dim=-1)
+        r = torch.nn.functional.normalize(reflected.to(f64), dim=-1)
+        m = self.material
+        if self.design == "exact":
+            return exact_decomposition(m, n, r, self.slow, self.source_dirs, self.power).total
+        return microfacet_decomposition(n, r, self.slow, self.source_dirs, self.power, m.kd,
+                                        m.f0, float(m.sigma)).total
 
 
 def _sources_sh(dirs: torch.Tensor, power: torch.Tensor, lmax: int) -> torch.Tensor:
@@ -313,4 +329,4 @@ def fit_decomposed_lighting(normal: torch.Tensor, reflected: torch.Tensor,
     apply_band_verdict(sol, rows)
     return DecomposedLighting(slow=slow, power=power, solution=sol, bands=rows,
                               ill_conditioned_from_l=ill, parts=parts, adequacy=adequacy,
-                              design=design)
+                              design=design, material=material, source_dirs=dirs)

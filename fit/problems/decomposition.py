@@ -104,6 +104,7 @@ def problem_decomposition(samples, known: Known, opts: FitOptions) -> FitResult:
                     note="power of bright source i (lighting.sources[i])")]
     est += material_estimates(None, params)
     return FitResult("decomposition", est, parts.total, rec, summary=summ,
+                     predict=lambda s: fit.predict(s.normal, s.reflected),
                      bands={"lighting": rows})
 
 

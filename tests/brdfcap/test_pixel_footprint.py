@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 import torch
 from brdfcap.capture.simulate import pixel_rule, simulate
+from brdfcap.reconstruct.geometry import PIXEL_GAUSS_OFFSETS
 from click.testing import CliRunner
 
 from brdfcap.cli import main
 from brdfcap.footprint import FOOTPRINT_MODEL_EFFECT, footprint_term
-from brdfcap.reconstruct.geometry import PIXEL_GAUSS_OFFSETS
 from brdfcap.testing import NOISE, PHONG_MATERIAL, make_tiny_capture, scene_text
 
 ENV = 'kind = "environment"\nsh = "grace-rh2001-nonneg"\nknown = true'

@@ -220,7 +220,8 @@ def test_a_material_that_reflects_nothing_is_one_line(tmp_path):
 
 def test_pixel_rays_must_form_a_gauss_rule_and_the_capture_says_which_pixel(tmp_path):
     """``[render] spp``: 1 (the centre, ``camera.pixel = "point"``) or k² (the k x k
-    Gauss-Legendre rule, ``"area"``); anything else is refused naming the key."""
+    Gauss-Legendre rule, ``"area"``); anything else is refused naming the key.
+    """
     from brdfcap.core.errors import CaptureError
 
     (tmp_path / "s.toml").write_text(SCENE.format(top="").replace("spp = 1", "spp = 8"))
