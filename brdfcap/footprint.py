@@ -8,9 +8,9 @@ sphere (s = 20) averaged over 16 rays per pixel gave problem brdf's exponent 5.3
 standard errors, and 96 pixels 2.3%, 9 errors (``bench/experiments/pixel_footprint.py``).
 
 :func:`model_footprint` models it where the scene calls for it: the first fit's own forward
-model (``FitResult.predict``) is rendered at the 2 x 2 Gauss-Legendre points of every pixel
-(:data:`brdfcap.reconstruct.geometry.PIXEL_GAUSS_OFFSETS`, exact for a bicubic image); where
-the mean of those four differs from the centre ray's by more than
+model (``FitResult.predict``) is rendered at the k x k Gauss-Legendre points of every pixel
+(:func:`brdfcap.capture.pixel.pixel_rule`; k = 2 is exact for a bicubic image, a larger k
+where the next rule disagrees); where the pixel mean differs from the centre ray's by more than
 :data:`FOOTPRINT_MODEL_EFFECT` (coherent effect in standard errors) the problem is solved again
 on ``b - (mean - centre)`` until that difference settles — a fixed point at which the
 *pixel-averaged* model explains the data (``docs/fitting.md``, "The pixel footprint").
@@ -28,9 +28,12 @@ from pathlib import Path
 
 import torch
 
+from brdfcap.capture.pixel import pixel_rule
+
 __all__ = ["footprint_check", "footprint_term", "model_footprint", "pixel_kind",
            "FootprintOutcome", "FOOTPRINT_WARN_EFFECT",
            "FOOTPRINT_MODEL_EFFECT", "FOOTPRINT_MAX_REFITS", "FOOTPRINT_SETTLED",
+           "FOOTPRINT_RULE_TOL", "FOOTPRINT_MAX_RULE",
            "PER_PIXEL_PROBLEMS"]
 
 #: Warn when ``RMS(ΔB/σ) · sqrt(n)`` exceeds this: the term, acting coherently on the ``n``
@@ -44,6 +47,11 @@ FOOTPRINT_WARN_EFFECT = 3.0
 #: samples (``RMS(ΔB/σ) · sqrt(n)``), is worth this many standard errors: below it a refit moves
 #: no parameter measurably, and no pixel is left out for it.
 FOOTPRINT_MODEL_EFFECT = 1.0
+#: The pixel's rule is the smallest k x k Gauss-Legendre rule whose correction the next rule
+#: reproduces to this (same units) ...
+FOOTPRINT_RULE_TOL = 0.25
+#: ... up to this k (36 rays a pixel); a warning when even it is not confirmed.
+FOOTPRINT_MAX_RULE = 6
 #: At most this many refits on corrected data ...
 FOOTPRINT_MAX_REFITS = 4
 #: ... stopping when the correction changed by less than this (same units) since the last one.
@@ -245,8 +253,8 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
     samples
         The run's samples (observed radiance).
     subpixel
-        ``() -> (list of Samples, keep)``: the samples' geometry at the sub-pixel points and
-        the rows whose every sub-pixel ray is usable
+        ``(offsets) -> (list of Samples, keep)``: the samples' geometry at sub-pixel
+        ``offsets`` ``(K, 2)`` and the rows whose every sub-pixel ray is usable
         (:func:`brdfcap.reconstruct.geometry.subpixel_samples`), or ``None`` where there is
         no mesh to cast against.
     solve
@@ -270,44 +278,83 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
                if subpixel is None else
                f"problem {fit.problem} has no forward model for other geometry")
         return unchanged(rec | {"modelled": False, "not_modelled": why}, warns)
-    subs, keep = subpixel()
-    sk = samples.take(keep)
-    subk = [t.take(keep) for t in subs]
+    rules: dict[int, tuple] = {}
 
-    def correction(f) -> torch.Tensor:
-        centre = f.predict(sk).to(torch.float64)
-        area = torch.stack([f.predict(t).to(torch.float64) for t in subk]).mean(0)
+    def rule(k: int):
+        """``(sub-pixel samples, weights, keep)`` of the k x k rule, cast once."""
+        if k not in rules:
+            offs, w = pixel_rule(k * k)
+            subs, keep_k = subpixel(offs)
+            rules[k] = (subs, torch.as_tensor(w, dtype=torch.float64), keep_k)
+        return rules[k]
+
+    def correction(f, k: int, rows: torch.Tensor) -> torch.Tensor:
+        """Return the k x k rule's pixel mean minus the centre ray of fit ``f`` at ``rows``."""
+        subs, w, _ = rule(k)
+        centre = f.predict(samples.take(rows)).to(torch.float64)
+        area = sum(float(wi) * f.predict(t.take(rows)).to(torch.float64)
+                   for wi, t in zip(w, subs))
         c = area - centre
         return torch.where(torch.isfinite(c), c, torch.zeros_like(c))
 
-    rec = {"pixel": "area", "pixel_source": pixel[1], "checked": True, "modelled": False,
-           "rule": "2 x 2 Gauss-Legendre points of the unit pixel",
-           "rays_per_pixel": len(subs), "model_above": FOOTPRINT_MODEL_EFFECT,
-           "samples": int(keep.sum()), "left_out": int((~keep).sum())}
     pred = fit.prediction
-    if pred is None or pred.shape != samples.radiance.shape or int(keep.sum()) == 0:
+    rec = {"pixel": "area", "pixel_source": pixel[1], "checked": True, "modelled": False,
+           "model_above": FOOTPRINT_MODEL_EFFECT}
+    if pred is None or pred.shape != samples.radiance.shape:
         return unchanged(rec | {"checked": False},
-                         why="no per-sample prediction, or no pixel whose footprint lies on "
-                             "one surface: not checked")
-    c = correction(fit)
-    sd = _noise_sd(sk, pred[keep].to(torch.float64))
-    if sd is None:
-        return unchanged(rec | {"checked": False}, why="no finite residual: not checked")
-    b = sk.radiance
-    good = torch.isfinite(b).all(-1) & torch.isfinite(sd).all(-1) & (sd > 0).all(-1)
+                         why="no per-sample prediction: not checked")
+    pred = pred.to(torch.float64)
+
+    def noise(rows):
+        sd_ = _noise_sd(samples.take(rows), pred[rows])
+        if sd_ is None:
+            return None, None
+        b_ = samples.radiance[rows]
+        return sd_, (torch.isfinite(b_).all(-1) & torch.isfinite(sd_).all(-1)
+                     & (sd_ > 0).all(-1))
+
+    k = 2
+    keep = rule(k)[2]
+    sd, good = noise(keep)
+    if int(keep.sum()) == 0 or sd is None:
+        return unchanged(rec | {"checked": False},
+                         why="no pixel whose footprint lies on one surface, or no finite "
+                             "residual: not checked")
+    c = correction(fit, k, keep)
     effect = _effect(c, sd, good)
-    rec["effect"] = effect
-    rec["rms_sigma"] = effect / math.sqrt(max(int(good.sum()), 1))
+    rec.update(effect=effect, rms_sigma=effect / math.sqrt(max(int(good.sum()), 1)),
+               samples=int(keep.sum()), left_out=int((~keep).sum()))
     if not effect > FOOTPRINT_MODEL_EFFECT:
-        rec["samples"] = len(samples)
-        rec["left_out"] = 0
+        rec.update(samples=len(samples), left_out=0)
         return unchanged(rec, why="the pixel mean and the centre ray differ by less than the "
                                   "threshold: the centre-ray fit stands")
+    # the rule: the smallest k x k whose correction the next rule confirms (an error
+    # estimate, as adaptive quadrature takes one), at most FOOTPRINT_MAX_RULE
+    rule_checks, confirmed = [], False
+    while k < FOOTPRINT_MAX_RULE:
+        nxt = keep & rule(k + 1)[2]
+        if not torch.equal(nxt, keep):
+            keep = nxt
+            sd, good = noise(keep)
+            c = correction(fit, k, keep)
+        c_next = correction(fit, k + 1, keep)
+        diff = _effect(c_next - c, sd, good)
+        rule_checks.append({"rule": k, "against": k + 1, "difference": diff})
+        if diff <= FOOTPRINT_RULE_TOL:
+            confirmed = True
+            break
+        k, c = k + 1, c_next
+    effect = _effect(c, sd, good)
+    sk = samples.take(keep)
+    rec.update(effect=effect, rms_sigma=effect / math.sqrt(max(int(good.sum()), 1)),
+               samples=int(keep.sum()), left_out=int((~keep).sum()),
+               rule=f"{k} x {k} Gauss-Legendre points of the unit pixel",
+               rays_per_pixel=k * k, rule_checks=rule_checks, rule_confirmed=confirmed)
     first, changes, settled = fit, [], False
     for _ in range(FOOTPRINT_MAX_REFITS):
         used = c
         fit, fitted = solve(replace(sk, radiance=sk.radiance - used), _start(fit))
-        c = correction(fit)
+        c = correction(fit, k, keep)
         changes.append(_effect(c - used, sd, good))
         if changes[-1] <= FOOTPRINT_SETTLED:
             settled = True
@@ -315,10 +362,11 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
     shifts = _shifts(first, fit)
     rec.update(modelled=True, refits=len(changes), settled=settled, changes=changes,
                shifts=shifts)
-    line = (f"Pixel footprint modelled: each pixel is the mean of {len(subs)} rays (2 x 2 "
-            f"Gauss-Legendre points), not its centre ray, which missed it by {effect:.3g} "
-            f"standard errors (coherent effect over {int(good.sum())} samples); "
-            f"{len(changes)} refit(s) on the corrected data moved "
+    line = (f"Pixel footprint modelled: each pixel is the mean of {k * k} rays ({k} x {k} "
+            f"Gauss-Legendre points; the {k + 1} x {k + 1} rule agrees to "
+            f"{rule_checks[-1]['difference']:.2g} standard errors), not its centre ray, which "
+            f"missed it by {effect:.3g} standard errors (coherent effect over "
+            f"{int(good.sum())} samples); {len(changes)} refit(s) on the corrected data moved "
             f"{_shift_words(shifts) or 'no estimate with a finite error'}"
             + (f"; {rec['left_out']} pixels whose footprint crosses an edge or a shadow "
                "boundary left out" if rec["left_out"] else "") + ".")
@@ -326,4 +374,10 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
         f"pixel footprint: the modelled pixel mean had not settled after "
         f"{FOOTPRINT_MAX_REFITS} refits (last change {changes[-1]:.2g} standard errors): the "
         f"results may still carry part of the footprint's bias"]
+    if not confirmed:
+        warns.append(
+            f"pixel footprint: even the {k} x {k} rule of each pixel's mean differs from the "
+            f"{k - 1} x {k - 1} one by {rule_checks[-1]['difference']:.2g} standard errors: "
+            f"the image varies faster than a pixel resolves (a near-mirror lobe seen too "
+            f"small); photograph the object larger")
     return FootprintOutcome(fit, fitted, sk, used, rec, warns, line)

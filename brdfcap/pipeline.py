@@ -219,8 +219,8 @@ def fit_with_footprint(capture: Capture, capture_dir: str | Path, geometry: Geom
     fit, fitted = solve_unfinished(options.problem, samples, known, fit_opts)
     subpixel = None
     if geometry.mesh is not None:
-        def subpixel():
-            return subpixel_samples(capture, geometry, samples)
+        def subpixel(offsets):
+            return subpixel_samples(capture, geometry, samples, offsets)
 
     def solve(data, start):
         return solve_unfinished(options.problem, data, known,

@@ -40,8 +40,8 @@ from brdfcap.fit.brdf import make_brdf
 from brdfcap.core.errors import CaptureError
 
 from .images import read_pixels
+from .pixel import pixel_rule
 from .reference import render_lights
-from .simulate import pixel_rule
 
 __all__ = ["DiligentData", "read_diligent", "import_diligent", "write_synthetic_diligent",
            "is_diligent_dir", "diligent_light_grid", "DILIGENT_WORLD_TO_CAMERA",
@@ -305,7 +305,7 @@ def write_synthetic_diligent(out: str | Path, *, size: int = 64, n_lights: int =
     :func:`diligent_light_grid`, per-light RGB intensities drawn from ``intensity_range``,
     rendered by the reference renderer (:func:`brdfcap.capture.reference.render_lights`, the
     registered ``phong`` model's point evaluation) averaged over ``spp`` rays per pixel
-    (:func:`brdfcap.capture.simulate.pixel_rule`; ``spp > 1`` averages the pixel footprint
+    (:func:`brdfcap.capture.pixel.pixel_rule`; ``spp > 1`` averages the pixel footprint
     as a camera does; the default 1 samples the centre, where the normals are given), radiance
     ``B``, pixel code
     ``round(65535 · clip(gain · B · (1 + noise_rel · N(0,1)), 0, 1))``: 16-bit quantisation,

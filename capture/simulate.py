@@ -44,6 +44,7 @@ from brdfcap.core.errors import CaptureError
 
 from .images import write_image
 from .interreflection import DEFAULT_DIRECTIONS, indirect_radiance
+from .pixel import pixel_rule
 from .reference import (
     LatLongProbe,
     irradiance_quadrature,
@@ -471,31 +472,6 @@ def _scene_light(light: dict):
     d = np.asarray(light["direction"], np.float64)
     return DirectionalLight(direction=d / np.linalg.norm(d),
                             radiance=np.asarray(light.get("radiance", [1, 1, 1]), np.float64))
-
-
-def pixel_rule(spp: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(offsets (spp, 2), weights (spp,))``: the pixel's mean as a quadrature rule.
-
-    ``spp = k²``: the ``k x k`` Gauss-Legendre product rule on the unit pixel ``[-½, ½]²``
-    (weights sum to 1), exact for the mean of any polynomial of degree ``2k - 1`` in each
-    coordinate (Abramowitz & Stegun 1964, 25.4.29): a box pixel of 100% fill factor, to the
-    order a smooth image needs (16 rays: degree 7). ``spp = 1`` is the pixel centre, as the
-    fits sample without the footprint model. (An equal-weight rank-1 lattice used before
-    shifted the pixel's centroid by up to 0.05 px, a first-order error, and missed the second
-    moment by 1-6%.)
-
-    Raises
-    ------
-    ValueError
-        ``spp`` not a square.
-    """
-    k = math.isqrt(spp) if spp >= 1 else 0
-    if k < 1 or k * k != spp:
-        raise ValueError(f"spp = {spp} is not a square")
-    x, w = np.polynomial.legendre.leggauss(k)
-    x, w = 0.5 * x, 0.5 * w
-    du, dv = np.meshgrid(x, x)
-    return np.stack([du.ravel(), dv.ravel()], -1), np.outer(w, w).ravel()
 
 
 class _Renderer:

@@ -21,7 +21,7 @@ from .shadows import ShadowPolicy, shadow_mask, shadow_policy
 
 __all__ = ["ViewGeometry", "Geometry", "Samples", "CenteredScene", "cast_view", "compute_geometry",
            "build_samples", "light_at", "GRAZING_COS", "EDGE_PX", "DISCONTINUITY_SIN",
-           "compute_capture_geometry", "subpixel_samples", "PIXEL_GAUSS_OFFSETS"]
+           "compute_capture_geometry", "subpixel_samples"]
 
 #: Pixels whose shading normal makes an angle above ``arccos(GRAZING_COS)`` (~84.3°) with the view
 #: direction are dropped: there the normal error of the scan and the pixel footprint make the
@@ -456,18 +456,12 @@ def build_samples(capture: Capture, geometry: Geometry,
                    position=cat("pos"), triangle=cat("tri", torch.long))
 
 
-#: Sub-pixel offsets of the pixel-footprint model (:func:`subpixel_samples`): the 2 x 2
-#: Gauss-Legendre rule on the unit pixel, ``(±1/(2√3), ±1/(2√3))``. Its mean is the pixel's
-#: mean of any bicubic image exactly (the centre ray misses it by ``(B_xx + B_yy)/24``, the
-#: 4-ray rule by a fourth-derivative term ``(B_xxxx + B_yyyy)/4320``; Abramowitz & Stegun 1964,
-#: 25.4.29 on ``[-½, ½]``).
-PIXEL_GAUSS_OFFSETS = tuple((su * 0.5 / 3 ** 0.5, sv * 0.5 / 3 ** 0.5)
-                            for sv in (-1.0, 1.0) for su in (-1.0, 1.0))
-
-
 def subpixel_samples(capture: Capture, geometry: Geometry, samples: Samples,
-                     offsets=PIXEL_GAUSS_OFFSETS) -> tuple[list[Samples], torch.Tensor]:
+                     offsets) -> tuple[list[Samples], torch.Tensor]:
     """Return the geometry of every sample's pixel at sub-pixel ``offsets`` (pixel units).
+
+    ``offsets`` ``(K, 2)`` ``(du, dv)`` from the pixel centre, e.g. the points of
+    :func:`brdfcap.capture.pixel.pixel_rule` (the footprint model, :mod:`brdfcap.footprint`).
 
     One :class:`Samples` per offset, row for row with ``samples`` (the same view, pixel,
     radiance and variance; the normal, directions, light and hit point of the ray through
@@ -505,7 +499,8 @@ def subpixel_samples(capture: Capture, geometry: Geometry, samples: Samples,
             continue
         r, c = pix[rows, 0], pix[rows, 1]
         for k, (du, dv) in enumerate(offsets):
-            g = cast_view(scene, mesh, shifted_camera(cam, du, dv), view.spec.world_to_camera)
+            g = cast_view(scene, mesh, shifted_camera(cam, float(du), float(dv)),
+                          view.spec.world_to_camera)
             ok = g.valid[r, c]
             col = cols[k]
             col["n"][rows], col["wo"][rows] = g.normal[r, c], g.wo[r, c]

@@ -1,6 +1,6 @@
 """Sub-pixel rays of the pixel-footprint model (session 23, ``subpixel_samples``).
 
-Each sample's pixel is cast again at the 2 x 2 Gauss-Legendre points against the mesh; the
+Each sample's pixel is cast again at a Gauss-Legendre rule's points against the mesh; the
 truth is the analytic unit sphere the simulator renders, met by the same shifted rays (not the
 mesh the pipeline casts against).
 """
@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from brdfcap.capture.load import load_capture
+from brdfcap.capture.pixel import pixel_rule
 from brdfcap.reconstruct import geometry as G
 from brdfcap.reconstruct.camera import camera_rays, shifted_camera
 from brdfcap.reconstruct.mesh import load_mesh
@@ -35,11 +36,12 @@ def _sphere_normals(cap, view, du, dv):
 
 def test_sub_pixel_rays_meet_the_surface_where_the_shifted_pixel_looks(tiny):
     cap, geo, s = tiny
-    subs, keep = G.subpixel_samples(cap, geo, s)
+    offsets = pixel_rule(4)[0]
+    subs, keep = G.subpixel_samples(cap, geo, s, offsets)
     assert len(subs) == 4 and keep.dtype == torch.bool and len(keep) == len(s)
     # a sphere's pixels near the silhouette have rays that leave it: left out, the rest kept
     assert 0 < int((~keep).sum()) < 0.2 * len(s)
-    for sub, (du, dv) in zip(subs, G.PIXEL_GAUSS_OFFSETS):
+    for sub, (du, dv) in zip(subs, offsets):
         assert torch.equal(sub.pixel, s.pixel) and torch.equal(sub.radiance, s.radiance)
         for view in cap.views:
             rows = (s.view == view.index) & keep
@@ -60,4 +62,4 @@ def test_a_normal_map_has_no_surface_to_cast_against(tiny):
 
     cap, geo, s = tiny
     with pytest.raises(GeometryError, match="normal map"):
-        G.subpixel_samples(cap, G.Geometry(mesh=None, views=geo.views), s)
+        G.subpixel_samples(cap, G.Geometry(mesh=None, views=geo.views), s, pixel_rule(4)[0])
