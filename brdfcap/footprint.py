@@ -378,6 +378,7 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
         warns.append(
             f"pixel footprint: even the {k} x {k} rule of each pixel's mean differs from the "
             f"{k - 1} x {k - 1} one by {rule_checks[-1]['difference']:.2g} standard errors: "
-            f"the image varies faster than a pixel resolves (a near-mirror lobe seen too "
-            f"small); photograph the object larger")
+            f"the image varies faster than a pixel resolves (mesh detail below a pixel, a "
+            f"shadow or terminator edge inside pixels, or a near-mirror lobe seen too small), "
+            f"so the modelled pixel means carry that much error; photograph the object larger")
     return FootprintOutcome(fit, fitted, sk, used, rec, warns, line)

@@ -159,6 +159,11 @@ def headline(results: dict) -> dict:
         "masking" in results else "views"
     what = [f"{fit.get('n_samples', 0)} pixel samples from {n_img} {unit}",
             f"problem “{fit.get('problem', '?')}”"]
+    fp = results.get("pixel_footprint") or {}
+    if fp.get("modelled"):  # docs/fitting.md, "The pixel footprint"
+        what.append(f"each pixel fitted as the mean of {fmt_num(fp.get('rays_per_pixel'))} rays "
+                    f"over its area (its centre ray alone was {fmt_num(fp.get('effect'))} "
+                    "standard errors off)")
     rows = []
     lt = results.get("lighting")
     cond = results.get("conditioning") or {}
