@@ -184,8 +184,9 @@ def known_of(capture: Capture, options: RunOptions, samples: Samples | None = No
                  colour_reference=colour_ref)
 
 
-def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitResult:
-    """Run the registered problem ``options.problem`` on ``samples``."""
+def _fit_inputs(capture: Capture, samples: Samples, options: RunOptions
+                ) -> tuple[Known, FitOptions]:
+    """Return what a fit of ``samples`` needs known, and its options (one-line errors first)."""
     if len(samples) == 0:
         raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
                        capture.config.toml_path)
@@ -193,8 +194,12 @@ def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitR
     fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
                           brdf_lmax=options.brdf_lmax, design=options.design,
                           method=options.method)
-    return solve_problem(options.problem, samples, known_of(capture, options, samples),
-                         fit_opts)
+    return known_of(capture, options, samples), fit_opts
+
+
+def fit_capture(capture: Capture, samples: Samples, options: RunOptions) -> FitResult:
+    """Run the registered problem ``options.problem`` on ``samples`` (centre rays only)."""
+    return solve_problem(options.problem, samples, *_fit_inputs(capture, samples, options))
 
 
 def fit_with_footprint(capture: Capture, capture_dir: str | Path, geometry: Geometry,
@@ -208,14 +213,7 @@ def fit_with_footprint(capture: Capture, capture_dir: str | Path, geometry: Geom
     explains the data. Returns ``(fit, samples the report shows, results.json:
     pixel_footprint, warnings)``; the fit's prediction is the pixel mean where it was modelled.
     """
-    if len(samples) == 0:
-        raise FitError("no usable pixels: every pixel is masked, grazing or off the mesh",
-                       capture.config.toml_path)
-    check_lmax(options.problem, options.lmax, capture.config.toml_path)
-    fit_opts = FitOptions(lmax=options.lmax, brdf=options.brdf, rule=options.rule,
-                          brdf_lmax=options.brdf_lmax, design=options.design,
-                          method=options.method)
-    known = known_of(capture, options, samples)
+    known, fit_opts = _fit_inputs(capture, samples, options)
     fit, fitted = solve_unfinished(options.problem, samples, known, fit_opts)
     subpixel = None
     if geometry.mesh is not None:
