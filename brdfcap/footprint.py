@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 from brdfcap.capture.pixel import pixel_rule
+from brdfcap.core.errors import BrdfcapError
 
 __all__ = ["footprint_check", "footprint_term", "model_footprint", "pixel_kind",
            "FootprintOutcome", "FOOTPRINT_WARN_EFFECT",
@@ -350,21 +351,31 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
                samples=int(keep.sum()), left_out=int((~keep).sum()),
                rule=f"{k} x {k} Gauss-Legendre points of the unit pixel",
                rays_per_pixel=k * k, rule_checks=rule_checks, rule_confirmed=confirmed)
-    first, changes, settled = fit, [], False
-    for _ in range(FOOTPRINT_MAX_REFITS):
-        used = c
-        fit, fitted = solve(replace(sk, radiance=sk.radiance - used), _start(fit))
-        c = correction(fit, k, keep)
-        changes.append(_effect(c - used, sd, good))
-        if changes[-1] <= FOOTPRINT_SETTLED:
-            settled = True
-            break
+    first, first_fitted, changes, settled = fit, fitted, [], False
+    try:
+        for _ in range(FOOTPRINT_MAX_REFITS):
+            used = c
+            fit, fitted = solve(replace(sk, radiance=sk.radiance - used), _start(fit))
+            c = correction(fit, k, keep)
+            changes.append(_effect(c - used, sd, good))
+            if changes[-1] <= FOOTPRINT_SETTLED:
+                settled = True
+                break
+    except BrdfcapError as exc:  # e.g. too few samples left for the problem: say so, go on
+        fit, fitted = first, first_fitted
+        rec, warns = footprint_check(pixel, samples, fit)
+        why = f"a refit on the pixels' means failed ({exc})"
+        return unchanged(rec | {"modelled": False, "not_modelled": why}, warns + [
+            f"pixel footprint: not modelled, {why}; the results are the centre-ray fit's"])
     shifts = _shifts(first, fit)
     rec.update(modelled=True, refits=len(changes), settled=settled, changes=changes,
                shifts=shifts)
+    last = rule_checks[-1]["difference"]
+    agree = (f"the {k + 1} x {k + 1} rule agrees to {last:.2g} standard errors" if confirmed
+             else f"not converged: the {k - 1} x {k - 1} rule differs by {last:.2g} standard "
+                  "errors")
     line = (f"Pixel footprint modelled: each pixel is the mean of {k * k} rays ({k} x {k} "
-            f"Gauss-Legendre points; the {k + 1} x {k + 1} rule agrees to "
-            f"{rule_checks[-1]['difference']:.2g} standard errors), not its centre ray, which "
+            f"Gauss-Legendre points; {agree}), not its centre ray, which "
             f"missed it by {effect:.3g} standard errors (coherent effect over "
             f"{int(good.sum())} samples); {len(changes)} refit(s) on the corrected data moved "
             f"{_shift_words(shifts) or 'no estimate with a finite error'}"

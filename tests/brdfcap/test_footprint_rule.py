@@ -94,3 +94,25 @@ def test_a_point_sampled_capture_is_left_alone():
     fit = _Toy(1.0, 0.1, 1.0, s)
     out = model_footprint(("point", "test"), fit, s, s, None, None)
     assert out.fit is fit and out.correction is None and not out.record["modelled"]
+
+
+def test_a_refit_that_fails_leaves_the_centre_ray_fit_and_says_why():
+    from brdfcap.core.errors import FitError
+
+    y, x = torch.meshgrid(torch.arange(12, dtype=torch.float64),
+                          torch.arange(12, dtype=torch.float64), indexing="ij")
+    x, y = x.flatten(), y.flatten()
+    s = _samples(x, y, A_TRUE * _box_mean(x, y, 0.8)[:, None])
+    first, _ = _solve(0.8)(s, None)
+
+    def subpixel(offsets):
+        return [_samples(x + du, y + dv, s.radiance) for du, dv in offsets], \
+            torch.ones(x.numel(), dtype=torch.bool)
+
+    def failing(data, start):
+        raise FitError("only 3 usable samples", "capture.toml")
+
+    out = model_footprint(("area", "test"), first, s, s, subpixel, failing)
+    assert out.fit is first and out.correction is None and not out.record["modelled"]
+    assert "only 3 usable samples" in out.record["not_modelled"]
+    assert any(w.startswith("pixel footprint: not modelled") for w in out.warnings)
