@@ -115,17 +115,23 @@ def pixel_kind(capture, capture_dir: str | Path) -> tuple[str, str]:
     return cfg.camera.pixel, "a camera's pixel (the default of camera.pixel)"
 
 
-def _noise_sd(samples, pred: torch.Tensor) -> torch.Tensor | None:
-    """``(N, C)`` noise s.d.: the noise model's, else the residual RMS per channel."""
+def _noise_scale(samples, pred: torch.Tensor):
+    """``(sd, usable)``: ``(N, C)`` noise s.d. and the ``(N,)`` samples it scales, or Nones.
+
+    The noise model's s.d., else the residual RMS per channel; ``usable`` where the radiance
+    and the s.d. are finite and the s.d. positive.
+    """
     b = samples.radiance
     var = getattr(samples, "variance", None)
     if var is not None:
-        return var.to(torch.float64).sqrt()
-    r = b - pred
-    fin = torch.isfinite(r).all(-1)
-    if not bool(fin.any()):
-        return None
-    return r[fin].pow(2).mean(0).sqrt().expand_as(b)
+        sd = var.to(torch.float64).sqrt()
+    else:
+        r = b - pred
+        fin = torch.isfinite(r).all(-1)
+        if not bool(fin.any()):
+            return None, None
+        sd = r[fin].pow(2).mean(0).sqrt().expand_as(b)
+    return sd, torch.isfinite(b).all(-1) & torch.isfinite(sd).all(-1) & (sd > 0).all(-1)
 
 
 def _effect(delta: torch.Tensor, sd: torch.Tensor, good: torch.Tensor) -> float:
@@ -159,17 +165,18 @@ def footprint_check(pixel: tuple[str, str], samples, fit) -> tuple[dict, list[st
         return rec, []
     pred = pred.to(device=b.device, dtype=torch.float64)
     delta, ok = footprint_term(pred, samples.view, pix)
-    sd = _noise_sd(samples, pred)
+    sd, usable = _noise_scale(samples, pred)
     if sd is None:
         rec["reason"] = "no finite residual: not checked"
         return rec, []
-    good = ok & torch.isfinite(b).all(-1) & torch.isfinite(sd).all(-1) & (sd > 0).all(-1)
+    good = ok & usable
     n = int(good.sum())
     if n == 0:
         rec["reason"] = "no sample has its four neighbours among the samples: not checked"
         return rec, []
-    rms = float((delta[good] / sd[good]).pow(2).mean().sqrt())
-    rec.update(checked=True, rms_sigma=rms, effect=rms * math.sqrt(n), samples=n)
+    effect = _effect(delta, sd, good)
+    rms = effect / math.sqrt(n)
+    rec.update(checked=True, rms_sigma=rms, effect=effect, samples=n)
     if not rec["effect"] > FOOTPRINT_WARN_EFFECT:
         return rec, []
     return rec, [f"pixel footprint: each pixel averages the radiance over its area while the fit "
@@ -307,12 +314,7 @@ def model_footprint(pixel: tuple[str, str], fit, fitted, samples, subpixel, solv
     pred = pred.to(torch.float64)
 
     def noise(rows):
-        sd_ = _noise_sd(samples.take(rows), pred[rows])
-        if sd_ is None:
-            return None, None
-        b_ = samples.radiance[rows]
-        return sd_, (torch.isfinite(b_).all(-1) & torch.isfinite(sd_).all(-1)
-                     & (sd_ > 0).all(-1))
+        return _noise_scale(samples.take(rows), pred[rows])
 
     k = 2
     keep = rule(k)[2]
